@@ -1,0 +1,465 @@
+"""The device: drive amplifier, hysteretic stack, mechanics, and the quartz force sensor.
+
+Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made hysteretic)::
+
+    uc [V] -> delay -> amplifier -> ua [V] -> PI -> x_h [um] -> creep -> x_free [um]
+           F_out = k_a x_free [N] -> mechanics -> x [um] (+ drift)
+
+* Amplifier (eq. 2): ``R C_a dua/dt + ua = k_amp uc``, output held between the rails
+  ``[u_min, u_max]``, and (beyond the paper) an optional current limit ``|C_a dua/dt| <= I_max``,
+  i.e. a slew-rate limit. With the command held over a step the response is monotone, so the
+  rate-independent PI evaluated at the step's end point is exact.
+* Stack (eq. 1 with hysteresis): the free stroke ``x_h = scale * Pi[ua / u_norm]`` (beyond the
+  paper, optionally saturating at high field: ``x_h / (1 + |x_h| / y_sat)``); the generated
+  force on the push rod is ``F_out = k_a x_h`` (eq. 5: ``k_a n d33 ua`` in the linear case).
+* Mechanics (eq. 4): ``m x'' + c x' + (k_a + k_f) x = F_out``, optionally followed by a further
+  mechanical mode (``extra_resonance``); solved exactly for an input interpolated linearly
+  over the step.
+* Creep (beyond the paper): ``x_free = (1 + sum_j g_j / (tau_j s + 1)) x_h``.
+* Sensor (eq. 3): the quartz charge ``q = d11 F_out`` on ``C_s + C_load`` gives
+  ``us = q / (C_s + C_load)``; with a finite leakage time constant the charge decays
+  (a first-order high-pass); plus offset and white measurement noise.
+
+All units keep explicit state with ``get_state``/``set_state``. Everything needs only NumPy.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .hysteresis import PrandtlIshlinskii, pi_step
+from .linear import discretize, tf2ss
+
+EPS0 = 8.8541878128e-12  # vacuum permittivity [F/m]
+
+__all__ = ["amp_step", "lti_advance", "actuator_step", "LTIData", "Actuator", "Sensor",
+           "sensor_step", "EPS0"]
+
+
+def amp_step(ua, target, tau, slew, h, decay):
+    """Exact amplifier response over ``h`` [s] to a constant ``target`` = k_amp*uc [V].
+
+    ``tau`` = R C_a [s], ``slew`` = I_max / C_a [V/s] (``inf`` = no current limit),
+    ``decay`` = exp(-h/tau) (precomputed). Returns the amplifier voltage at the end of the step.
+    """
+    e = target - ua
+    if abs(e) > slew * tau:
+        sgn = 1.0 if e > 0 else -1.0
+        t_ramp = (abs(e) - slew * tau) / slew
+        if t_ramp >= h:
+            return ua + sgn * slew * h
+        return target - sgn * slew * tau * math.exp(-(h - t_ramp) / tau)
+    return target - e * decay
+
+
+def lti_advance(phi, g, cd, xs, u, tmp):
+    """Advance an LTI block whose input moves linearly from its previous value to ``u``.
+
+    ``phi``: n x n; ``g``: 2 x n (rows G0, G1); ``cd``: n + 1 (C then D); ``xs``: n + 1 (state then
+    previous input), updated in place; ``tmp``: scratch of length n. Returns the output ``C x + D u``.
+    """
+    n = len(tmp)
+    u0 = xs[n]
+    g0 = g[0]
+    g1 = g[1]
+    for i in range(n):
+        acc = g0[i] * u0 + g1[i] * u
+        row = phi[i]
+        for j in range(n):
+            acc += row[j] * xs[j]
+        tmp[i] = acc
+    y = cd[n] * u
+    for i in range(n):
+        xs[i] = tmp[i]
+        y += cd[i] * tmp[i]
+    xs[n] = u
+    return y
+
+
+class LTIData:
+    """Discrete data of a SISO transfer function for :func:`lti_advance`, with state.
+
+    ``num``/``den`` in descending powers of ``s``. ``prepare(h)`` (re)discretises (FOH).
+    """
+
+    __slots__ = ("num", "den", "a", "b", "phi", "g", "cd", "xs", "tmp", "h")
+
+    def __init__(self, num, den):
+        self.num = [float(v) for v in np.atleast_1d(num)]
+        self.den = [float(v) for v in np.atleast_1d(den)]
+        a, b, c, d = tf2ss(self.num, self.den)
+        self.a, self.b = a, b
+        n = a.shape[0]
+        self.cd = [float(v) for v in c.ravel()] + [float(d[0, 0])]
+        self.xs = [0.0] * (n + 1)
+        self.tmp = [0.0] * n
+        self.phi = [[0.0] * n for _ in range(n)]
+        self.g = [[0.0] * n, [0.0] * n]
+        self.h = None
+
+    @property
+    def order(self):
+        return len(self.tmp)
+
+    def prepare(self, h):
+        if h == self.h:
+            return
+        n = self.order
+        if n:
+            phi, g0, g1 = discretize(self.a, self.b, h, "foh")
+            for i in range(n):
+                self.phi[i][:] = [float(v) for v in phi[i]]
+            self.g[0][:] = [float(v) for v in g0.ravel()]
+            self.g[1][:] = [float(v) for v in g1.ravel()]
+        self.h = h
+
+    def settle(self, u):
+        """Set the state to the steady state for a constant input ``u``."""
+        n = self.order
+        if n:
+            xs = np.linalg.solve(self.a, -self.b[:, 0] * u)
+            self.xs[:n] = [float(v) for v in xs]
+        self.xs[n] = float(u)
+
+    def output(self):
+        n = self.order
+        return sum(self.cd[i] * self.xs[i] for i in range(n)) + self.cd[n] * self.xs[n]
+
+    def dc_gain(self):
+        return self.num[-1] / self.den[-1]
+
+
+def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
+                  cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, k_force,
+                  me_phi, me_g, me_cd, me_xs, me_tmp, drift, out):
+    """One internal step of the actuator with the command ``uc`` [V] held over ``h`` [s].
+
+    ``amp`` = [k_amp, tau, slew, u_min, u_max, decay]; ``amp_s`` = [ua];
+    ``dly`` = [n_delay_steps, head] (delay line of the command, ``dly_buf`` its ring buffer);
+    ``pi_k`` = [1/u_norm, scale, 1/saturation] (strain saturation ``x_h / (1 + |x_h| / y_sat)``,
+    0 = none); ``k_force`` = k_a * 1e-6 [N/um]; ``drift`` = polynomial
+    coefficients of an additive displacement drift in time [um, um/s, um/s^2, ...].
+    Writes ``out`` = [x [um], F_out [N], ua [V], x_h [um]].
+    """
+    nd = int(dly[0])
+    if nd > 0:
+        head = int(dly[1])
+        size = len(dly_buf)
+        dly_buf[head] = uc
+        uc = dly_buf[(head - nd) % size]
+        dly[1] = (head + 1) % size
+    target = amp[0] * uc
+    if target < amp[3]:
+        target = amp[3]
+    elif target > amp[4]:
+        target = amp[4]
+    ua = amp_step(amp_s[0], target, amp[1], amp[2], h, amp[5])
+    amp_s[0] = ua
+    x_h = pi_k[1] * pi_step(ua * pi_k[0], pi_r, pi_w, pi_z)
+    if pi_k[2] != 0.0:
+        x_h = x_h / (1.0 + abs(x_h) * pi_k[2])
+    x_free = lti_advance(cr_phi, cr_g, cr_cd, cr_xs, x_h, cr_tmp)
+    force = k_force * x_free
+    x = lti_advance(me_phi, me_g, me_cd, me_xs, force, me_tmp)
+    nd2 = len(drift)
+    if nd2:
+        acc = 0.0
+        for i in range(nd2 - 1, -1, -1):
+            acc = acc * t_end + drift[i]
+        x += acc
+    out[0] = x
+    out[1] = force
+    out[2] = ua
+    out[3] = x_h
+
+
+class Actuator:
+    """Drive amplifier + hysteretic stack + mechanics, stepped with a held command.
+
+    Parameters (SI unless stated)
+    ----------
+    k_amp : amplifier gain [V/V]; R : series resistance [ohm]; C_a : stack capacitance [F];
+    u_min, u_max : amplifier rails [V]; I_max : current limit [A] (``inf``: none);
+    delay : command latency [s] (resolved to the internal step);
+    hysteresis : :class:`PrandtlIshlinskii` from ua [V] to free stroke [um];
+    saturation : strain saturation ``y_sat`` [um]: ``x_h -> x_h / (1 + |x_h| / y_sat)`` (``inf``: none);
+    creep_gains, creep_taus : creep elements (dimensionless gains, time constants [s]);
+    m [kg], c [N s/m], k_a [N/m] (stack), k_f [N/m] (preload spring);
+    resonance : optional ``(f_n [Hz], zeta [1])`` of a further mode in series (unity DC gain);
+    drift : polynomial coefficients of an additive drift [um, um/s, ...].
+    max_step : largest internal step [s]; a communication step is split into equal sub-steps.
+
+    Outputs after :meth:`advance`: ``x`` [um], ``F`` [N], ``ua`` [V], ``x_h`` [um].
+    """
+
+    def __init__(self, *, k_amp, R, C_a, u_min, u_max, hysteresis: PrandtlIshlinskii,
+                 m, c, k_a, k_f, saturation=math.inf, I_max=math.inf, delay=0.0, creep_gains=(), creep_taus=(),
+                 resonance=None, drift=(), max_step=1e-4):
+        self.k_amp, self.R, self.C_a = float(k_amp), float(R), float(C_a)
+        self.u_min, self.u_max, self.I_max = float(u_min), float(u_max), float(I_max)
+        self.delay = float(delay)
+        self.hysteresis = hysteresis
+        self.saturation = float(saturation)
+        self.m, self.c, self.k_a, self.k_f = float(m), float(c), float(k_a), float(k_f)
+        self.creep_gains = [float(v) for v in creep_gains]
+        self.creep_taus = [float(v) for v in creep_taus]
+        self.resonance = None if resonance is None else (float(resonance[0]), float(resonance[1]))
+        self.drift = [float(v) for v in drift]
+        self.max_step = float(max_step)
+        tau = self.R * self.C_a
+        self.amp = [self.k_amp, tau, self.I_max / self.C_a, self.u_min, self.u_max, 0.0]
+        self.amp_s = [0.0]
+        self.dly = [0.0, 0.0]
+        self.dly_buf = [0.0]
+        self.pi_r = list(hysteresis.thresholds)
+        self.pi_w = list(hysteresis.weights)
+        self.pi_z = [0.0] * hysteresis.n
+        self.pi_k = [1.0 / hysteresis.in_scale, hysteresis.out_scale, 1.0 / self.saturation]
+        self.creep = LTIData(*creep_tf(self.creep_gains, self.creep_taus))
+        self.k_force = self.k_a * 1e-6
+        self.mech = LTIData(*mechanics_tf(self.m, self.c, self.k_a, self.k_f, self.resonance))
+        self.out = [0.0, 0.0, 0.0, 0.0]
+        self._h = None
+        self.time = 0.0
+
+    # -- configuration ---------------------------------------------------------------------
+    def prepare(self, h):
+        """Discretise for internal step ``h`` [s] (cached)."""
+        if h == self._h:
+            return
+        self.amp[5] = math.exp(-h / self.amp[1])
+        self.creep.prepare(h)
+        self.mech.prepare(h)
+        nd = int(round(self.delay / h)) if self.delay > 0 else 0
+        if nd != int(self.dly[0]):
+            fill = self.dly_buf[int(self.dly[1]) - 1] if len(self.dly_buf) > 1 else 0.0
+            self.dly_buf = [fill] * (nd + 1)
+            self.dly[0], self.dly[1] = float(nd), 0.0
+        self._h = h
+
+    def substeps(self, step):
+        """Number of equal internal steps used for a communication step ``step`` [s]."""
+        return max(1, int(math.ceil(step / self.max_step - 1e-9)))
+
+    # -- stepping --------------------------------------------------------------------------
+    def step(self, uc, h):
+        """One internal step of ``h`` [s] with the command ``uc`` [V] held; returns ``x`` [um]."""
+        if h != self._h:
+            self.prepare(h)
+        self.time += h
+        cr, me = self.creep, self.mech
+        actuator_step(uc, h, self.time, self.amp, self.amp_s, self.dly, self.dly_buf,
+                      self.pi_r, self.pi_w, self.pi_z, self.pi_k,
+                      cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.k_force,
+                      me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out)
+        return self.out[0]
+
+    def advance(self, uc, step):
+        """Advance a communication step ``step`` [s] (split by ``max_step``); returns ``x`` [um]."""
+        n = self.substeps(step)
+        h = step / n
+        for _ in range(n):
+            self.step(uc, h)
+        return self.out[0]
+
+    @property
+    def x(self):
+        return self.out[0]
+
+    @property
+    def F(self):
+        return self.out[1]
+
+    @property
+    def ua(self):
+        return self.out[2]
+
+    # -- state -----------------------------------------------------------------------------
+    def reset(self, t0=0.0):
+        """Relaxed device at rest at time ``t0`` (zero command, zero memory)."""
+        self.time = float(t0)
+        self.amp_s[0] = 0.0
+        for i in range(len(self.pi_z)):
+            self.pi_z[i] = 0.0
+        self.creep.settle(0.0)
+        self.mech.settle(0.0)
+        self.dly_buf[:] = [0.0] * len(self.dly_buf)
+        self.dly[1] = 0.0
+        self.out[:] = [self._drift_at(self.time), 0.0, 0.0, 0.0]
+
+    def _drift_at(self, t):
+        return sum(c * t ** i for i, c in enumerate(self.drift))
+
+    def get_state(self):
+        """Complete state as plain Python data (JSON-serialisable)."""
+        return {"time": self.time, "ua": self.amp_s[0], "z": list(self.pi_z),
+                "creep": list(self.creep.xs), "mech": list(self.mech.xs),
+                "dly": list(self.dly), "dly_buf": list(self.dly_buf), "out": list(self.out),
+                "h": self._h}
+
+    def set_state(self, s):
+        self.time = float(s["time"])
+        self.amp_s[0] = float(s["ua"])
+        self.pi_z[:] = [float(v) for v in s["z"]]
+        self.creep.xs[:] = [float(v) for v in s["creep"]]
+        self.mech.xs[:] = [float(v) for v in s["mech"]]
+        if s["h"] is not None:
+            self.prepare(float(s["h"]))
+        self.dly[:] = [float(v) for v in s["dly"]]
+        self.dly_buf = [float(v) for v in s["dly_buf"]]
+        self.out[:] = [float(v) for v in s["out"]]
+
+    # -- analysis helpers --------------------------------------------------------------------
+    def static_gain(self):
+        """Displacement per free stroke at DC: k_a / (k_a + k_f) times the creep DC gain."""
+        return self.mech.dc_gain() * self.k_force * self.creep.dc_gain()
+
+
+def creep_tf(gains, taus):
+    """Transfer function ``1 + sum_j g_j / (tau_j s + 1)`` as ``(num, den)``."""
+    num, den = np.array([1.0]), np.array([1.0])
+    for g, tau in zip(gains, taus):
+        # (num/den) + g/(tau s + 1) = (num (tau s + 1) + g den) / (den (tau s + 1))
+        num = np.polyadd(np.polymul(num, [tau, 1.0]), g * den)
+        den = np.polymul(den, [tau, 1.0])
+    return num, den
+
+
+def mechanics_tf(m, c, k_a, k_f, resonance=None):
+    """Force [N] to displacement [um]: ``1e6 / (m s^2 + c s + k_a + k_f)``, times an optional mode."""
+    num, den = np.array([1e6]), np.array([m, c, k_a + k_f])
+    if resonance is not None:
+        wn = 2.0 * math.pi * resonance[0]
+        num = np.polymul(num, [wn * wn])
+        den = np.polymul(den, [1.0, 2.0 * resonance[1] * wn, wn * wn])
+    return num, den
+
+
+def sensor_step(force, h, sen, sen_s, noise):
+    """Quartz sensor output [V] at the end of a step whose force moved linearly to ``force`` [N].
+
+    ``sen`` = [S_q [V/N], leak_decay = exp(-h/tau_leak) (0 < .. <= 1), tau_leak/h, offset [V]];
+    ``sen_s`` = [w, F_prev] where ``us = S_q F + w`` and ``w`` is the leaked part
+    (``tau dw/dt = -(w + S_q F)``, solved exactly for the linear force ramp).
+    ``noise`` is the additive noise sample [V] for this output.
+    """
+    sq = sen[0]
+    a = sen[1]
+    if a < 1.0:
+        f0 = sen_s[1]
+        # exact solution of tau w' = -w - S_q F with F linear from f0 to force over h:
+        # w1 = a w0 - S_q [ (1 - a) f0 + (force - f0) (1 - (1 - a) * tau/h) ]
+        r = sen[2]
+        w = a * sen_s[0] - sq * ((1.0 - a) * f0 + (force - f0) * (1.0 - (1.0 - a) * r))
+        sen_s[0] = w
+    sen_s[1] = force
+    return sq * force + sen_s[0] + sen[3] + noise
+
+
+class Sensor:
+    """The quartz force sensor (paper eq. 3) with optional leakage, offset and noise.
+
+    Parameters
+    ----------
+    d11 : piezoelectric coefficient of quartz [C/N]
+    thickness : wafer thickness [m]; eps_r : relative permittivity [1]; area : electrode area [m^2]
+    C_load : cable and input capacitance in parallel [F] (0: the paper's eq. 3)
+    tau_leak : charge leakage time constant [s] (``inf``: no leakage, as in the paper)
+    offset : output offset [V]; noise_std : white noise standard deviation [V]; seed : noise seed
+    """
+
+    def __init__(self, *, d11, thickness, eps_r, area, C_load=0.0, tau_leak=math.inf,
+                 offset=0.0, noise_std=0.0, seed=0):
+        self.d11, self.thickness, self.eps_r, self.area = (float(d11), float(thickness),
+                                                           float(eps_r), float(area))
+        self.C_load, self.tau_leak = float(C_load), float(tau_leak)
+        self.offset, self.noise_std, self.seed = float(offset), float(noise_std), int(seed)
+        self.C_s = EPS0 * self.eps_r * self.area / self.thickness
+        self.sensitivity = self.d11 / (self.C_s + self.C_load)       # [V/N]
+        self.sen = [self.sensitivity, 1.0, 0.0, self.offset]
+        self.sen_s = [0.0, 0.0]
+        self.noise = NoiseSource(self.noise_std, self.seed)
+        self.us = self.offset
+        self._h = None
+
+    def prepare(self, h):
+        if h == self._h:
+            return
+        if math.isfinite(self.tau_leak):
+            self.sen[1] = math.exp(-h / self.tau_leak)
+            self.sen[2] = self.tau_leak / h
+        self._h = h
+
+    def step(self, force, h):
+        """Advance ``h`` [s] with the force moving linearly to ``force`` [N]; returns us [V]."""
+        if h != self._h:
+            self.prepare(h)
+        self.us = sensor_step(force, h, self.sen, self.sen_s, self.noise.next())
+        return self.us
+
+    def reset(self, force=0.0):
+        self.sen_s[0] = 0.0
+        self.sen_s[1] = float(force)
+        self.noise.reset()
+        self.us = self.sensitivity * force + self.offset
+
+    def get_state(self):
+        return {"w": self.sen_s[0], "F": self.sen_s[1], "us": self.us, "noise": self.noise.get_state(),
+                "h": self._h}
+
+    def set_state(self, s):
+        self.sen_s[0], self.sen_s[1] = float(s["w"]), float(s["F"])
+        self.us = float(s["us"])
+        self.noise.set_state(s["noise"])
+        if s["h"] is not None:
+            self.prepare(float(s["h"]))
+
+
+class NoiseSource:
+    """Reproducible white Gaussian noise drawn in blocks (NumPy PCG64), with explicit state.
+
+    The sequence depends only on ``seed`` and the number of samples drawn, so a monolithic run
+    and an FMU draw identical samples; the state (generator state + position) is saveable.
+    """
+
+    BLOCK = 4096
+
+    def __init__(self, std, seed):
+        self.std = float(std)
+        self.seed = int(seed)
+        self.reset()
+
+    def reset(self):
+        self._gen = np.random.Generator(np.random.PCG64(self.seed))
+        self._buf = []
+        self._pos = 0
+        self._block_state = None
+
+    def _refill(self):
+        self._block_state = self._gen.bit_generator.state
+        self._buf = (self.std * self._gen.standard_normal(self.BLOCK)).tolist()
+        self._pos = 0
+
+    def next(self):
+        if self.std == 0.0:
+            return 0.0
+        if self._pos >= len(self._buf):
+            self._refill()
+        v = self._buf[self._pos]
+        self._pos += 1
+        return v
+
+    def take(self, n):
+        """The next ``n`` samples as an array (same sequence as ``n`` calls to :meth:`next`)."""
+        return np.array([self.next() for _ in range(n)]) if self.std else np.zeros(n)
+
+    def get_state(self):
+        return {"block_state": self._block_state, "pos": self._pos, "filled": bool(self._buf)}
+
+    def set_state(self, s):
+        self.reset()
+        if s["filled"]:
+            self._gen.bit_generator.state = s["block_state"]
+            self._refill()
+            self._pos = int(s["pos"])
