@@ -124,7 +124,7 @@ def identify_compensator(model: Model, *, design=True, engine="auto", progress=N
 
     say = progress or (lambda msg: None)
     new = model.copy()
-    comp = model["compensator"]
+
     u_norm = 30.0
     say("measuring a 0.5 Hz, 0-30 V sine (3 periods, probe noise on)")
     static_rec = measure(model, Signal("sine", 15.0, 15.0, 0.5), 6.0, 1e-3, 0, engine)

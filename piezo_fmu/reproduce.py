@@ -20,7 +20,6 @@ errors are computed from exactly those samples, with ``error = output - ideal``:
 from __future__ import annotations
 
 import json
-import math
 import warnings
 from pathlib import Path
 

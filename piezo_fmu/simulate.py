@@ -24,7 +24,7 @@ from functools import lru_cache
 import numpy as np
 
 from .core import control, hysteresis, plant
-from .core.control import SIGNALS, compensator_step
+from .core.control import compensator_step
 from .core.plant import actuator_step, sensor_step
 from .errors import UserError
 from .model import Model
