@@ -389,8 +389,14 @@ def validate_model(model) -> list:
     """Problems of a model (a :class:`Model`, a path or TOML text); empty when valid."""
     if isinstance(model, Model):
         text = dump_model(model)
-    elif isinstance(model, (str, Path)) and Path(str(model)).exists():
-        text = Path(model).read_text()
+    elif isinstance(model, Path) or (isinstance(model, str) and "\n" not in model
+                                     and model.strip().endswith(".toml")):
+        try:
+            text = Path(model).read_bytes().decode("utf-8")
+        except FileNotFoundError:
+            return [f"{model}: model file not found"]
+        except (OSError, UnicodeDecodeError) as exc:
+            return [f"{model}: cannot be read as text ({exc.__class__.__name__})"]
     else:
         text = str(model)
     try:

@@ -111,15 +111,17 @@ class SimResult:
         return self.n_steps / self.wall_s if self.wall_s > 0 else math.inf
 
 
-def closed_loop(n, h, t0, rec_every, xref, use_ext, noise,
+def closed_loop(n, h, t0, k0, rec_every, xref, use_ext, noise,
                 amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
                 cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, k_force,
                 me_phi, me_g, me_cd, me_xs, me_tmp, drift, act_out, act_time,
                 sen, sen_s, cfg, ref, gains, pid_s, inv_r, inv_w, inv_z, inv_k,
                 gi_phi, gi_g, gi_cd, gi_xs, gi_tmp, comp_out, rec):
-    """Run ``n`` steps of ``h`` [s] from ``t0``; record every ``rec_every``-th step into ``rec``.
+    """Run steps ``k0 + 1 .. k0 + n`` of ``h`` [s] after the start time ``t0``; record every
+    ``rec_every``-th step into ``rec``. Times are ``t0 + k h`` (no accumulated round-off, so the
+    result does not depend on how a run is split into chunks).
 
-    ``xref[k]`` is the external reference at ``t0 + k h`` (used when ``use_ext``); ``noise[k]`` the
+    ``xref[k]`` is the external reference at ``t0 + (k0 + k) h`` (used when ``use_ext``); ``noise[k]`` the
     sensor noise at step ``k + 1``. Returns the number of rows written to ``rec``
     (columns: t, x_ref, x, us, uc, ua, F). All state arrays are updated in place.
     """
@@ -133,7 +135,7 @@ def closed_loop(n, h, t0, rec_every, xref, use_ext, noise,
                       cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, k_force,
                       me_phi, me_g, me_cd, me_xs, me_tmp, drift, act_out)
         us = sensor_step(act_out[1], h, sen, sen_s, noise[k])
-        t = t0 + (k + 1) * h
+        t = t0 + (k0 + k + 1) * h
         xr = xref[k + 1] if use_ext else 0.0
         compensator_step(t, xr, us, h, cfg, ref, gains, pid_s, inv_r, inv_w, inv_z, inv_k,
                          gi_phi, gi_g, gi_cd, gi_xs, gi_tmp, comp_out)
@@ -318,14 +320,13 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
     last = first
     while done < n_total:
         n = min(chunk, n_total - done)
-        tc = t0 + done * h
-        xref = (signal.x_ref_at(tc + h * np.arange(n + 1), k_ideal, k_amp) if use_ext
+        xref = (signal.x_ref_at(t0 + h * np.arange(done, done + n + 1), k_ideal, k_amp) if use_ext
                 else np.zeros(1))
         noise_arr = sen.noise.take(n)
         rec = np.empty((n // rec_every + 1, 7))
         # the recording phase continues across chunks because chunks are multiples of rec_every
         w0 = time.perf_counter()
-        rows = runner(n, h, tc, rec_every, xref, use_ext, noise_arr, *a, *s, *c, rec)
+        rows = runner(n, h, t0, done, rec_every, xref, use_ext, noise_arr, *a, *s, *c, rec)
         wall += time.perf_counter() - w0
         done += n
         last = rec[:rows]

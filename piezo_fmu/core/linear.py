@@ -126,8 +126,9 @@ class LinearSystem:
     method : {"foh", "zoh"}
         How the input is interpolated within a step.
 
-    ``step(u, h)`` advances from the previous input to ``u`` over ``h`` seconds and returns the
-    output at the end of the step. The state (``x`` and the previous input) is explicit.
+    ``step(u, h)`` advances ``h`` seconds and returns the output at the end of the step: with
+    ``"foh"`` the input moves linearly from the previous value to ``u``, with ``"zoh"`` ``u`` is
+    held over the step. The state (``x`` and the previous input) is explicit.
     """
 
     __slots__ = ("num", "den", "method", "_a", "_b", "_c", "_d", "_x", "_tmp", "_u", "_h",
@@ -174,7 +175,8 @@ class LinearSystem:
     def step(self, u, h):
         if h != self._h:
             self.prepare(h)
-        lti_step(self._phi, self._g0, self._g1, self._x, self._u, u, self._tmp)
+        u0 = u if self.method == "zoh" else self._u
+        lti_step(self._phi, self._g0, self._g1, self._x, u0, u, self._tmp)
         self._u = u
         y = self._dd * u
         c = self._cl
