@@ -148,6 +148,9 @@ def test_noise_is_reproducible_and_resumable():
     d.set_state(state)
     assert [d.next() for _ in range(50)] == tail
     assert np.std(first) == pytest.approx(1.0, rel=0.05)
+    e = NoiseSource(1.0, 7)
+    mixed = list(e.take(3)) + [e.next() for _ in range(4090)] + list(e.take(907))
+    assert mixed == first
 
 
 def test_pid_discrete_with_conditional_integration():

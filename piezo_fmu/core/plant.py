@@ -432,13 +432,15 @@ class NoiseSource:
 
     def reset(self):
         self._gen = np.random.Generator(np.random.PCG64(self.seed))
+        self._arr = np.empty(0)
         self._buf = []
         self._pos = 0
         self._block_state = None
 
     def _refill(self):
         self._block_state = self._gen.bit_generator.state
-        self._buf = (self.std * self._gen.standard_normal(self.BLOCK)).tolist()
+        self._arr = self.std * self._gen.standard_normal(self.BLOCK)
+        self._buf = self._arr.tolist()
         self._pos = 0
 
     def next(self):
@@ -452,7 +454,18 @@ class NoiseSource:
 
     def take(self, n):
         """The next ``n`` samples as an array (same sequence as ``n`` calls to :meth:`next`)."""
-        return np.array([self.next() for _ in range(n)]) if self.std else np.zeros(n)
+        if self.std == 0.0:
+            return np.zeros(n)
+        out = np.empty(n)
+        done = 0
+        while done < n:
+            if self._pos >= len(self._buf):
+                self._refill()
+            m = min(n - done, len(self._buf) - self._pos)
+            out[done:done + m] = self._arr[self._pos:self._pos + m]
+            self._pos += m
+            done += m
+        return out
 
     def get_state(self):
         return {"block_state": self._block_state, "pos": self._pos, "filled": bool(self._buf)}

@@ -1,0 +1,176 @@
+"""Bad input gets one clear line and exit status 2; nothing is lost or half-written (issue 6)."""
+import subprocess
+import sys
+
+import pytest
+
+from piezo_fmu.cli import main
+from piezo_fmu.model import DEFAULT_MODEL
+
+GOOD = "time,u_ref\n0,0\n0.01,10\n0.02,20\n0.03,10\n"
+
+# (name, file content as bytes or None for a missing file, words the message must contain)
+BAD_INPUTS = [
+    ("missing", None, ["file not found"]),
+    ("empty", b"", ["empty"]),
+    ("binary", b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR\x00\x00", ["binary"]),
+    ("semicolons", b"time;u_ref\n0;0\n0.01;1\n", ["one column", "semicolon"]),
+    ("missing column", b"time,volts\n0,0\n0.01,1\n", ["x_ref, u_ref, u"]),
+    ("duplicate column", b"time,u_ref,u_ref\n0,0,0\n0.01,1,1\n", ["duplicate", "u_ref"]),
+    ("non-numeric", b"time,u_ref\n0,0\n0.01,abc\n", ["row 3", "column u_ref", "'abc'"]),
+    ("nan", b"time,u_ref\n0,0\n0.01,nan\n", ["row 3", "not finite"]),
+    ("inf", b"time,u_ref\n0,inf\n0.01,1\n", ["row 2", "not finite"]),
+    ("time backwards", b"time,u_ref\n0,0\n0.02,1\n0.01,2\n", ["row 4", "does not increase"]),
+    ("ragged", b"time,u_ref\n0,0\n0.01\n", ["row 3", "cells"]),
+    ("too short", b"time,u_ref\n0,0\n", ["1 data row", "at least 2"]),
+]
+
+
+def run_cli(args, capsys):
+    code = main(args)
+    captured = capsys.readouterr()
+    return code, captured.err
+
+
+@pytest.mark.parametrize("name, content, words", BAD_INPUTS, ids=[b[0] for b in BAD_INPUTS])
+def test_simulate_reference_file_errors(tmp_path, capsys, name, content, words):
+    path = tmp_path / "ref.csv"
+    if content is not None:
+        path.write_bytes(content)
+    out = tmp_path / "run.csv"
+    code, err = run_cli(["simulate", "--signal", "csv", "--input", str(path), "--stop-time", "0.02",
+                         "--out", str(out), "--quiet"], capsys)
+    assert code == 2
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    assert str(path) in lines[0]
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+    assert "Traceback" not in err
+    assert not out.exists()
+
+
+def test_simulate_good_reference_file(tmp_path, capsys):
+    path = tmp_path / "ref.csv"
+    path.write_text(GOOD)
+    out = tmp_path / "run.csv"
+    code, err = run_cli(["simulate", "--signal", "csv", "--input", str(path), "--stop-time", "0.03",
+                         "--record-step", "1e-3", "--out", str(out)], capsys)
+    assert code == 0, err
+    header = out.read_text().splitlines()[1]
+    assert header.split(",")[:5] == ["time", "x_ref", "x", "us", "uc"]
+
+
+def test_recordings_must_be_uniform_when_asked(tmp_path):
+    from piezo_fmu.errors import UserError
+    from piezo_fmu.recording import read_csv_table
+
+    path = tmp_path / "rec.csv"
+    path.write_text("time,u,x\n0,0,0\n0.01,1,1\n0.02,1,1\n0.035,1,1\n")
+    with pytest.raises(UserError, match=r"row 5: time step 0.015 s differs from the sampling interval"):
+        read_csv_table(path, required=("time", "u"), one_of=("x",), uniform=True)
+
+
+@pytest.mark.parametrize("command", [
+    ["simulate", "--stop-time", "0.01"],
+    ["reproduce", "--out", "{tmp}/r"],
+    ["identify", "--out", "{tmp}/m.toml"],
+])
+@pytest.mark.parametrize("problem, text, words", [
+    ("unknown key", "[amplifier]\nbogus = 1\n", ["amplifier.bogus"]),
+    ("not toml", "this is [not toml", ["not valid TOML"]),
+    ("negative mass", None, ["mechanics.m", "> 0"]),
+])
+def test_every_command_rejects_a_bad_model_file(tmp_path, capsys, command, problem, text, words):
+    model = tmp_path / "bad.toml"
+    if text is None:
+        text = DEFAULT_MODEL.read_text().replace("m = { value = 0.021579", "m = { value = -0.021579")
+    elif problem == "unknown key":
+        text = DEFAULT_MODEL.read_text().replace("[amplifier]\n", text)
+    model.write_text(text)
+    args = [a.replace("{tmp}", str(tmp_path)) for a in command] + ["--model", str(model), "--quiet"]
+    code, err = run_cli(args, capsys)
+    assert code == 2
+    assert str(model) in err and all(w in err for w in words), err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_bad_option_values_exit_2(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--freq", "-3"])
+    assert exc.value.code == 2
+    assert "--freq must be a positive number" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--mode", "turbo"])
+    assert exc.value.code == 2
+
+
+def test_existing_output_is_not_overwritten_without_force(tmp_path, capsys):
+    out = tmp_path / "run.csv"
+    out.write_text("precious")
+    code, err = run_cli(["simulate", "--stop-time", "0.01", "--out", str(out), "--quiet"], capsys)
+    assert code == 2 and "--force" in err
+    assert out.read_text() == "precious"
+    code, err = run_cli(["simulate", "--stop-time", "0.01", "--out", str(out), "--force", "--quiet"],
+                        capsys)
+    assert code == 0 and out.read_text().startswith("# units")
+
+
+def test_exception_half_way_leaves_the_old_file(tmp_path, monkeypatch, capsys):
+    """A run that fails after writing part of its output leaves the previous file untouched."""
+    import importlib
+
+    sim = importlib.import_module("piezo_fmu.simulate")   # the package exports a function of that name
+
+    out = tmp_path / "run.csv"
+    out.write_text("previous good result")
+    calls = {"n": 0}
+    real = sim.closed_loop
+
+    def failing(*args):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real(*args)
+
+    monkeypatch.setattr(sim, "closed_loop", failing)
+    code = main(["simulate", "--stop-time", "1.2", "--engine", "python", "--out", str(out),
+                 "--force", "--quiet"] + ["--record-step", "1e-5"])
+    assert code == 130
+    assert out.read_text() == "previous good result"
+    assert calls["n"] == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.csv"]
+
+
+def test_ctrl_c_in_a_real_process_leaves_no_partial_file(tmp_path):
+    """SIGINT to a running `piezo-fmu simulate`: exit status 130, no output file, no temp file."""
+    import signal
+    import time
+
+    out = tmp_path / "long.csv"
+    proc = subprocess.Popen([sys.executable, "-m", "piezo_fmu.cli", "simulate", "--stop-time", "60",
+                             "--engine", "python", "--out", str(out), "--quiet"],
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 60
+    while time.time() < deadline and not any(tmp_path.iterdir()):
+        time.sleep(0.05)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_help_explains_every_command(capsys):
+    for cmd in ("simulate", "reproduce", "identify", "validate"):
+        with pytest.raises(SystemExit) as exc:
+            main([cmd, "--help"])
+        assert exc.value.code == 0
+        assert len(capsys.readouterr().out) > 200
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "piezo_fmu.cli", "--debug", "simulate", "--model",
+                           str(tmp_path / "none.toml")], capture_output=True, text=True)
+    assert proc.returncode != 0 and "Traceback" in proc.stderr
