@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .core.hysteresis import PrandtlIshlinskii
-from .core.linear import is_hurwitz
+from .core.units import check_sections
 from .errors import UserError
 
 __all__ = ["Spec", "SCHEMA", "ModelError", "Model", "load_model", "loads_model", "validate_model",
@@ -318,42 +318,7 @@ def _parse(raw, origin):
 
 
 def _cross_checks(s):
-    problems = []
-    a = s["amplifier"]
-    if not a["u_max"] > a["u_min"]:
-        problems.append(f"amplifier.u_max: must exceed amplifier.u_min ({a['u_max']} <= {a['u_min']})")
-    c = s["compensator"]
-    if not c["uc_max"] > c["uc_min"]:
-        problems.append(f"compensator.uc_max: must exceed compensator.uc_min ({c['uc_max']} <= {c['uc_min']})")
-    for sec in ("hysteresis", "compensator.hysteresis"):
-        h = s[sec]
-        pi = PrandtlIshlinskii.__new__(PrandtlIshlinskii)
-        object.__setattr__(pi, "thresholds", tuple(h["thresholds"]))
-        object.__setattr__(pi, "weights", tuple(h["weights"]))
-        object.__setattr__(pi, "in_scale", h["u_norm"])
-        object.__setattr__(pi, "out_scale", h["scale"])
-        problem = pi.problem()
-        if problem:
-            key = "weights" if "weight" in problem else "thresholds"
-            problems.append(f"{sec}.{key}: {problem}")
-    cr = s["creep"]
-    if len(cr["gains"]) != len(cr["time_constants"]):
-        problems.append(f"creep.time_constants: has {len(cr['time_constants'])} entries but creep.gains "
-                        f"has {len(cr['gains'])}")
-    d = s["compensator.dynamics"]
-    num, den = np.trim_zeros(np.array(d["num"]), "f"), np.trim_zeros(np.array(d["den"]), "f")
-    if den.size == 0:
-        problems.append("compensator.dynamics.den: is zero")
-    elif num.size > den.size:
-        problems.append("compensator.dynamics.num: G(s) is improper (numerator degree > denominator degree)")
-    elif not is_hurwitz(den):
-        problems.append(f"compensator.dynamics.den: G(s) is unstable (poles {np.roots(den)})")
-    elif num.size == 0 or not is_hurwitz(num):
-        problems.append("compensator.dynamics.num: G(s) has right-half-plane or zero numerator roots, "
-                        "so G_inv(s) would be unstable")
-    elif abs(num[-1] / den[-1] - 1.0) > 1e-6:
-        problems.append(f"compensator.dynamics: G(s) must have unity DC gain, has {num[-1] / den[-1]:.6g}")
-    return problems
+    return check_sections(s)
 
 
 def loads_model(text, origin="<string>") -> Model:

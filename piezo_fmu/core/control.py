@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 
 from .hysteresis import PrandtlIshlinskii, pi_step
+from .linear import same_step
 from .plant import LTIData, lti_advance
 
 __all__ = ["MODES", "INVERSES", "SIGNALS", "reference_value", "pid_step", "compensator_step",
@@ -213,7 +214,7 @@ class Compensator:
             self.cfg[1] = float(INVERSES[inverse])
 
     def prepare(self, h):
-        if h != self._h:
+        if not same_step(h, self._h):
             self.ginv.prepare(h)
             self._h = h
 

@@ -29,7 +29,7 @@ import math
 import numpy as np
 
 from .hysteresis import PrandtlIshlinskii, pi_step
-from .linear import discretize, tf2ss
+from .linear import discretize, same_step, tf2ss
 
 EPS0 = 8.8541878128e-12  # vacuum permittivity [F/m]
 
@@ -103,7 +103,7 @@ class LTIData:
         return len(self.tmp)
 
     def prepare(self, h):
-        if h == self.h:
+        if same_step(h, self.h):
             return
         n = self.order
         if n:
@@ -225,8 +225,8 @@ class Actuator:
 
     # -- configuration ---------------------------------------------------------------------
     def prepare(self, h):
-        """Discretise for internal step ``h`` [s] (cached)."""
-        if h == self._h:
+        """Discretise for internal step ``h`` [s] (cached; see :func:`~.linear.same_step`)."""
+        if same_step(h, self._h):
             return
         self.amp[5] = math.exp(-h / self.amp[1])
         self.creep.prepare(h)
@@ -384,7 +384,7 @@ class Sensor:
         self._h = None
 
     def prepare(self, h):
-        if h == self._h:
+        if same_step(h, self._h):
             return
         if math.isfinite(self.tau_leak):
             self.sen[1] = math.exp(-h / self.tau_leak)

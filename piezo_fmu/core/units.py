@@ -5,11 +5,64 @@ monolithic model and, inside an FMU, the slaves, which carry the model's values 
 """
 from __future__ import annotations
 
+import numpy as np
+
 from .control import Compensator
 from .hysteresis import PrandtlIshlinskii
+from .linear import is_hurwitz
 from .plant import Actuator, Sensor
 
-__all__ = ["hysteresis_from", "actuator_from", "sensor_from", "compensator_from"]
+__all__ = ["hysteresis_from", "actuator_from", "sensor_from", "compensator_from", "check_sections"]
+
+
+def check_sections(sections) -> list:
+    """Consistency problems across parameters (each names the key), empty when consistent.
+
+    Checks what single values cannot: rails in order, invertible hysteresis models, creep lists
+    of equal length, and a compensator ``G(s)`` that is proper, stable, minimum-phase (so
+    ``G_inv`` is stable) and of unity DC gain. Used by model files and by the FMUs.
+    """
+    problems = []
+    a = sections.get("amplifier")
+    if a is not None and not a["u_max"] > a["u_min"]:
+        problems.append(f"amplifier.u_max: must exceed amplifier.u_min ({a['u_max']} <= {a['u_min']})")
+    c = sections.get("compensator")
+    if c is not None and not c["uc_max"] > c["uc_min"]:
+        problems.append(f"compensator.uc_max: must exceed compensator.uc_min "
+                        f"({c['uc_max']} <= {c['uc_min']})")
+    for sec in ("hysteresis", "compensator.hysteresis"):
+        h = sections.get(sec)
+        if h is None:
+            continue
+        pi = PrandtlIshlinskii.__new__(PrandtlIshlinskii)
+        for attr, key in (("thresholds", "thresholds"), ("weights", "weights"),
+                          ("in_scale", "u_norm"), ("out_scale", "scale")):
+            object.__setattr__(pi, attr, tuple(h[key]) if attr in ("thresholds", "weights") else h[key])
+        problem = pi.problem()
+        if problem:
+            key = "weights" if "weight" in problem else "thresholds"
+            problems.append(f"{sec}.{key}: {problem}")
+    cr = sections.get("creep")
+    if cr is not None and len(cr["gains"]) != len(cr["time_constants"]):
+        problems.append(f"creep.time_constants: has {len(cr['time_constants'])} entries but creep.gains "
+                        f"has {len(cr['gains'])}")
+    d = sections.get("compensator.dynamics")
+    if d is not None:
+        num = np.trim_zeros(np.array(d["num"], dtype=float), "f")
+        den = np.trim_zeros(np.array(d["den"], dtype=float), "f")
+        if den.size == 0:
+            problems.append("compensator.dynamics.den: is zero")
+        elif num.size > den.size:
+            problems.append("compensator.dynamics.num: G(s) is improper "
+                            "(numerator degree > denominator degree)")
+        elif not is_hurwitz(den):
+            problems.append(f"compensator.dynamics.den: G(s) is unstable (poles {np.roots(den)})")
+        elif num.size == 0 or not is_hurwitz(num):
+            problems.append("compensator.dynamics.num: G(s) has right-half-plane or zero numerator "
+                            "roots, so G_inv(s) would be unstable")
+        elif abs(num[-1] / den[-1] - 1.0) > 1e-6:
+            problems.append(f"compensator.dynamics: G(s) must have unity DC gain, has {num[-1] / den[-1]:.6g}")
+    return problems
 
 
 def hysteresis_from(sections, name="hysteresis") -> PrandtlIshlinskii:
