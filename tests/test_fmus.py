@@ -924,3 +924,25 @@ def test_state_codec_is_exact():
     assert slavebase.state_dumps(back) == data
     assert bits(back["f"]) == bits(v["f"]) and back["t"] == (1, "a") and back["i"] == v["i"]
     assert back["d"] == {1: "x", "__t": None} and back["a"].dtype == np.int32 and type(back["s"]) is np.float64
+
+
+def test_random_call_sequences_never_take_the_host_down(built_fmus):
+    """Hypothesis drives each FMU with random FMI call sequences and wild values (issue 6); it runs
+    in a child process so that a crash would show as a failed exit code, not a dead pytest."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    paths = {name: str(p) for name, p in built_fmus.items() if name in ("Actuator", "Sensor", "Compensator")}
+    script = Path(__file__).with_name("fuzz_fmus.py")
+    r = subprocess.run([sys.executable, str(script), json.dumps(paths), "40", "0"],
+                       capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
+    summary = json.loads(next(ln for ln in r.stdout.splitlines() if ln.startswith("@@"))[2:])
+    for name, s in summary.items():
+        assert s["examples"] == 40, (name, s)
+        assert s["steps"] >= 1000, (name, s)             # thousands of steps over all FMUs
+        assert s["fatal"] > 0 or s.get("discard", 0) > 0, (name, s)   # the abuse was rejected
+        assert s["nonfinite_after_ok"] == 0, (name, s)   # an OK step never hands out NaN/inf
+        assert s["not_recovered"] == 0, (name, s)        # reset + init always recovers
+        assert s.get("other", 0) == 0 and s.get("error", 0) == 0, (name, s)
