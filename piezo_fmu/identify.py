@@ -170,7 +170,10 @@ def identify_compensator(model: Model, *, design=True, engine="auto", progress=N
               "sensor_gain": s_gain, "sensor_offset": s_off, "weights": list(pi.weights)}
     if design:
         pid = design_pid(new)
-        for key in ("Kp", "Ki", "Kd", "Tf", "filter_hz"):
+        for key in ("Kp", "Ki", "Kd", "Tf"):
             new.set("compensator", key, float(f"{pid[key]:.6g}"), pid["source"])
+        new.set("compensator", "filter_hz", pid["filter_hz"],
+                "chosen: 20x the identified amplifier corner, so the dynamic inverse's own lag at "
+                "50 Hz is 1.4 deg while its high-frequency gain stays 20")
         report["pid"] = pid
     return new.check(), report

@@ -35,6 +35,7 @@ def atomic_writer(path, mode="w", force=False, newline=None):
     check_writable(path, force)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent or ".")
     try:
+        os.chmod(tmp, 0o666 & ~_umask())          # mkstemp makes 0600; give the usual permissions
         with os.fdopen(fd, mode, newline=newline) as fh:
             yield fh
             fh.flush()
@@ -44,6 +45,12 @@ def atomic_writer(path, mode="w", force=False, newline=None):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def _umask():
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
 
 
 def write_text(path, text, force=False):

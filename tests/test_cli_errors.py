@@ -174,3 +174,14 @@ def test_debug_shows_the_traceback(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "piezo_fmu.cli", "--debug", "simulate", "--model",
                            str(tmp_path / "none.toml")], capture_output=True, text=True)
     assert proc.returncode != 0 and "Traceback" in proc.stderr
+
+
+def test_outputs_get_ordinary_permissions(tmp_path):
+    import os
+
+    from piezo_fmu.io import write_text
+
+    write_text(tmp_path / "a.txt", "x")
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o666 & ~mask

@@ -17,23 +17,18 @@ import struct
 import subprocess
 import sys
 import tempfile
-from ctypes import byref
 from pathlib import Path
 
 import numpy as np
 import pytest
-from fmpy import calloc, extract, free, read_model_description
+from fmpy import extract, read_model_description
 from fmpy.fmi1 import FMICallException
 from fmpy.fmi2 import (
     FMU2Slave,
-    fmi2CallbackAllocateMemoryTYPE,
-    fmi2CallbackFreeMemoryTYPE,
-    fmi2CallbackFunctions,
-    fmi2CallbackLoggerTYPE,
 )
-from fmpy.logging import addLoggerProxy
 from fmpy.validation import validate_fmu
 
+from piezo_fmu import fmilog
 from piezo_fmu.connections import COMPONENTS
 from piezo_fmu.core import units
 from piezo_fmu.model import SCHEMA, load_model
@@ -51,16 +46,12 @@ ERROR = 3
 LOG = []      # (instance, status, category, message)
 
 
-def _logger(env, instance, status, category, message):
-    LOG.append((instance.decode() if instance else "", status, category.decode() if category else "",
-                message.decode("utf-8", "replace") if message else ""))
+def _logger(instance, status, category, message):
+    LOG.append((instance, status, category, message))
 
 
-CALLBACKS = fmi2CallbackFunctions()
-CALLBACKS.logger = fmi2CallbackLoggerTYPE(_logger)
-CALLBACKS.allocateMemory = fmi2CallbackAllocateMemoryTYPE(calloc)
-CALLBACKS.freeMemory = fmi2CallbackFreeMemoryTYPE(free)
-addLoggerProxy(byref(CALLBACKS))
+# fmpy's native log proxy is process-global: use the one process-wide logger (piezo_fmu.fmilog)
+fmilog.listen(_logger)
 
 
 class Fmu:
@@ -87,7 +78,7 @@ class Slave:
         self.fmu = fmu
         self.s = FMU2Slave(guid=fmu.md.guid, unzipDirectory=fmu.dir, modelIdentifier=fmu.name,
                            instanceName=instance)
-        self.s.instantiate(callbacks=CALLBACKS, loggingOn=True)
+        self.s.instantiate(callbacks=fmilog.callbacks(), loggingOn=True)
         self.t = t0
         if init:
             self.s.setupExperiment(startTime=t0)

@@ -69,8 +69,10 @@ def test_table4_pid_cuts_rms_at_least_fourfold(repro):
     for k in ("0.5", "50"):
         cut = r["table3"]["dynamic_inverse"][k]["rms"] / r["table4"]["ff_pid"][k]["rms"]
         assert cut >= 4.0, (k, cut)
-    # our goal was 10x: record how close we are (asserted so a regression shows)
-    assert r["checks"]["table4_rms_cut_by_pid"]["50"] >= 10.0
+    # Our goal was 10x. The shipped PID trades bandwidth for stability under Jacobi co-simulation
+    # masters (see test_pid_design_margins_hold_for_the_shipped_gains): measured x8.3 at 50 Hz
+    # (x20.8 with the Gauss-Seidel-only design, unstable in Jacobi masters at 1e-4 s). Guard it.
+    assert r["checks"]["table4_rms_cut_by_pid"]["50"] >= 8.0
 
 
 def test_feedforward_alone_leaves_real_model_error(repro):
@@ -96,6 +98,9 @@ def test_pid_design_margins_hold_for_the_shipped_gains():
     assert mg["S_at_hz"] < 0.1
     for ratio in (0.5, 2.0):
         assert margins(loop(m, c["Kp"], c["Ki"], c["Kd"], c["Tf"], s_ratio=ratio))["stable"]
+    # Jacobi masters (fmpy.ssp, libcosim) add two steps of delay: still stable with margin
+    jac = margins(loop(m, c["Kp"], c["Ki"], c["Kd"], c["Tf"], delay_steps=2))
+    assert jac["stable"] and jac["pm_deg"] >= 45.0 and jac["gm_db"] >= 6.0
 
 
 def test_identification_reproduces_the_shipped_compensator():

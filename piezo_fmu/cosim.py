@@ -1,0 +1,847 @@
+"""The co-simulation master: Actuator.fmu, Sensor.fmu and Compensator.fmu coupled by fmpy.
+
+The wiring comes from :mod:`piezo_fmu.connections`. Every communication step ``t_k -> t_k + H``
+(``t_k = t0 + k H``, computed from the step counter so the time does not drift):
+
+* **Gauss-Seidel** (default), in the order of :data:`~piezo_fmu.connections.ORDER`: each
+  component's inputs are set from the outputs just computed, then it steps::
+
+      Actuator:    uc(t_k)                        -> x, F, ua at t_k+1
+      Sensor:      F(t_k+1)                       -> us at t_k+1
+      Compensator: us(t_k+1), x_ref(t_k+1)        -> uc, x_target for the next interval
+
+  This is exactly the orchestration of the monolithic model (:mod:`piezo_fmu.simulate`), so at a
+  communication step equal to the monolithic step the two agree to round-off.
+* **Jacobi**: all inputs are set from the outputs at ``t_k``, then all components step. Each
+  connection adds one step of delay, so the feedback path (Actuator -> Sensor -> Compensator)
+  sees the measurement two steps late; the difference to Gauss-Seidel is O(H). The PID is
+  designed to keep a 45 deg phase margin with those two delays at H = 1e-4 s (see
+  :mod:`piezo_fmu.control_design`), so Jacobi runs (and Jacobi masters such as fmpy.ssp and
+  libcosim) stay stable; at 1e-4 s they differ from Gauss-Seidel by about 0.7 % of the stroke.
+
+Initialisation (both algorithms): all FMUs enter initialisation mode with the start values
+applied, then, in Gauss-Seidel order, each gets its inputs from the outputs already known, leaves
+initialisation mode and reports its initial outputs (the actuator at rest, the sensor's voltage,
+the compensator's initial command). The initial values are therefore consistent, as in libcosim.
+
+The reference: with a generator signal (sine, step, triangle, constant) the Compensator's own
+generator is configured (``reference.*`` parameters) and its ``x_ref`` input is not used; with a
+table (``Signal("table", ...)``) ``reference.signal = 0`` and the master feeds ``x_ref`` [um],
+interpolated at the instant the Compensator samples it: the start time at initialisation and
+``t_k+1`` in the step ``t_k -> t_k+1`` (the Compensator computes the command for the next interval
+from its inputs at the end of the step).
+
+Failures: a missing or unreadable FMU, a failing FMI call (with the messages the FMU logged)
+and a model whose list parameters do not fit the FMUs raise :class:`~piezo_fmu.errors.UserError`
+(:class:`FmuError`); after an fmi2Fatal no further call is made on any instance. Ctrl-C is taken
+between FMI calls (inside an FMU it would turn into an fmi2Fatal).
+
+Speed: value references are batched per FMU and the FMI functions are called through ctypes on
+preallocated arrays (one ``fmi2SetReal``, one ``fmi2DoStep`` and one ``fmi2GetReal`` per FMU
+and step; nothing is allocated per step). Results stream in chunks to ``sink``.
+"""
+from __future__ import annotations
+
+import collections
+import ctypes
+import math
+import shutil
+import signal as _signal
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import fmilog
+from .connections import COMPONENTS, CONNECTIONS, EXTERNAL_INPUTS, ORDER, RECORDED
+from .core.control import INVERSES, MODES, SIGNALS
+from .errors import UserError
+from .simulate import COLUMNS, UNITS, Signal, SimResult
+
+__all__ = [
+    "ALGORITHMS",
+    "DEFAULT_FMU_DIR",
+    "FmuError",
+    "Slave",
+    "cosimulate",
+    "fmu_paths",
+    "run_cli",
+    "run_component",
+]
+
+DEFAULT_FMU_DIR = Path(__file__).resolve().parent.parent / "models"
+ALGORITHMS = ("gauss-seidel", "jacobi")
+BUILD_HINT = "run python build_fmu.py first"
+STATUS = ("ok", "warning", "discard", "error", "fatal", "pending")
+
+# Which FMU carries the parameters of a model section (used when an FMU has no variable of a
+# section at all, e.g. an actuator built without creep elements, to still detect a mismatch).
+SECTION_OWNER = {
+    "amplifier": "Actuator", "hysteresis": "Actuator", "creep": "Actuator",
+    "mechanics": "Actuator", "resonance": "Actuator", "drift": "Actuator",
+    "sensor": "Sensor",
+    "compensator": "Compensator", "compensator.hysteresis": "Compensator",
+    "compensator.dynamics": "Compensator",
+}
+# Model-file values that are strings and the Integer parameters that encode them.
+ENUM_PARAMETERS = {"compensator.mode": MODES, "compensator.inverse": INVERSES}
+
+CHUNK = 2000  # communication steps between progress reports / sink calls
+
+
+class FmuError(UserError):
+    """An FMU could not be loaded or an FMI call failed; the message carries the FMU's log."""
+
+
+# -- FMU paths ------------------------------------------------------------------------------------
+
+def fmu_paths(fmus=None, names=tuple(COMPONENTS)) -> dict:
+    """``{name: Path}`` of the FMUs, from a folder (``<folder>/<name>.fmu``) or a dict of paths.
+
+    Raises :class:`UserError` (one line, with the remedy) when a file is missing.
+    """
+    if fmus is None:
+        fmus = DEFAULT_FMU_DIR
+    if isinstance(fmus, (str, Path)):
+        folder = Path(fmus)
+        if not folder.is_dir():
+            raise UserError(f"{folder}: FMU folder not found; {BUILD_HINT}")
+        paths = {n: folder / f"{n}.fmu" for n in names}
+    else:
+        paths = {}
+        for n in names:
+            if n not in fmus:
+                raise UserError(f"no FMU given for {n} (expected keys {', '.join(names)})")
+            paths[n] = Path(fmus[n])
+    missing = [str(p) for p in paths.values() if not p.is_file()]
+    if missing:
+        raise UserError(f"{', '.join(missing)}: not found; {BUILD_HINT}")
+    return paths
+
+
+# -- one FMU instance driven through raw ctypes calls ---------------------------------------------
+
+_c_double_p = ctypes.POINTER(ctypes.c_double)
+_c_uint_p = ctypes.POINTER(ctypes.c_uint)
+_c_int_p = ctypes.POINTER(ctypes.c_int)
+
+
+class _LogBook:
+    """Collects the FMUs' log messages (per instance, the last few) from the process-wide logger
+    of :mod:`piezo_fmu.fmilog` (never a per-run native callback: see that module)."""
+
+    KEEP = 25
+
+    def __init__(self):
+        self.messages = collections.defaultdict(lambda: collections.deque(maxlen=self.KEEP))
+        self._token = fmilog.listen(self._log)
+        self.callbacks = fmilog.callbacks()
+
+    def _log(self, instance, status, category, text):
+        name = instance or "?"
+        # one line per message (the CLI reports errors on one line)
+        text = " | ".join(line.strip() for line in text.strip().splitlines() if line.strip())
+        self.messages[name].append((status, text))
+
+    def close(self):
+        fmilog.unlisten(self._token)
+
+    def describe(self, name, min_status=1):
+        """The instance's logged messages (warnings and worse; else the last ones), one per line."""
+        msgs = list(self.messages.get(name, ()))
+        picked = [m for m in msgs if m[0] >= min_status] or msgs[-3:]
+        return "; ".join(f"[{STATUS[s] if 0 <= s < len(STATUS) else s}] {t}" for s, t in picked)
+
+
+class Slave:
+    """One co-simulation FMU instance with the FMI 2.0 calls bound to ctypes.
+
+    Use :meth:`bind` to get preallocated arrays for batched ``fmi2SetReal``/``fmi2GetReal``.
+    """
+
+    def __init__(self, name, path, logbook: _LogBook):
+        from fmpy import extract, read_model_description
+        from fmpy.fmi2 import FMU2Slave
+
+        self.name = name
+        self.path = Path(path)
+        self.log = logbook
+        self.state = "new"
+        self.unzip = None
+        self.fmu = None
+        try:
+            md = read_model_description(str(path), validate=False)
+        except Exception as exc:  # noqa: BLE001 - fmpy raises bare Exception
+            raise FmuError(f"{path}: not a readable FMU ({exc}); {BUILD_HINT}") from None
+        if md.fmiVersion != "2.0" or md.coSimulation is None:
+            raise FmuError(f"{path}: not an FMI 2.0 co-simulation FMU; {BUILD_HINT}")
+        self.md = md
+        self.variables = {v.name: v for v in md.modelVariables}
+        self.unzip = tempfile.mkdtemp(prefix=f"piezo-fmu-{name}-")
+        try:
+            extract(str(path), unzipdir=self.unzip)
+            self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=self.unzip,
+                                 modelIdentifier=md.coSimulation.modelIdentifier, instanceName=name)
+        except Exception as exc:  # noqa: BLE001 - fmpy raises bare Exception
+            self.close()
+            raise FmuError(f"{path}: cannot load the FMU ({exc}); {BUILD_HINT}") from None
+        dll = self.fmu.dll
+        vp, sz, dbl, i = ctypes.c_void_p, ctypes.c_size_t, ctypes.c_double, ctypes.c_int
+
+        def bind(fname, argtypes):
+            f = getattr(dll, fname)
+            f.argtypes = argtypes
+            f.restype = ctypes.c_int
+            return f
+
+        self.set_real = bind("fmi2SetReal", [vp, _c_uint_p, sz, _c_double_p])
+        self.get_real = bind("fmi2GetReal", [vp, _c_uint_p, sz, _c_double_p])
+        self.set_integer = bind("fmi2SetInteger", [vp, _c_uint_p, sz, _c_int_p])
+        self.get_integer = bind("fmi2GetInteger", [vp, _c_uint_p, sz, _c_int_p])
+        self.do_step = bind("fmi2DoStep", [vp, dbl, dbl, i])
+        self._setup = bind("fmi2SetupExperiment", [vp, i, dbl, dbl, i, dbl])
+        self._enter = bind("fmi2EnterInitializationMode", [vp])
+        self._exit = bind("fmi2ExitInitializationMode", [vp])
+        self._terminate = bind("fmi2Terminate", [vp])
+        try:
+            self.fmu.instantiate(callbacks=logbook.callbacks, loggingOn=True)
+        except Exception:  # noqa: BLE001 - fmpy raises bare Exception
+            detail = logbook.describe(name)
+            self.close()
+            raise FmuError(f"{name} ({path}): fmi2Instantiate failed"
+                           + (f": {detail}" if detail else "")) from None
+        self.c = ctypes.c_void_p(self.fmu.component)
+        self.state = "instantiated"
+
+    # -- variables ------------------------------------------------------------------------------
+    def variable(self, name):
+        v = self.variables.get(name)
+        if v is None:
+            raise FmuError(f"{self.path}: has no variable {name!r} (the FMU does not match "
+                           f"piezo_fmu.connections); {BUILD_HINT}")
+        return v
+
+    def start_value(self, name):
+        v = self.variable(name)
+        if v.start is None:
+            return None
+        return int(v.start) if v.type == "Integer" else float(v.start)
+
+    def bind(self, names):
+        """``(vr array, value array, n)`` for a batch of Real variables (preallocated ctypes arrays)."""
+        n = len(names)
+        vr = (ctypes.c_uint * max(n, 1))(*[self.variable(x).valueReference for x in names])
+        values = (ctypes.c_double * max(n, 1))(*[float(self.variable(x).start or 0.0) for x in names])
+        return vr, values, n
+
+    # -- calls ----------------------------------------------------------------------------------
+    def check(self, status, what, t=None):
+        """Raise :class:`FmuError` with the FMU's log for a status worse than warning."""
+        if status <= 1:
+            return
+        self.state = "fatal" if status == 4 else "failed"
+        label = STATUS[status] if 0 <= status < len(STATUS) else str(status)
+        at = f" at t={t:.9g} s" if t is not None else ""
+        detail = self.log.describe(self.name)
+        raise FmuError(f"{self.name}: {what} failed{at} (status {label})"
+                       + (f": {detail}" if detail else " (the FMU logged nothing)"))
+
+    def set_values(self, values: dict):
+        """Set start values ``{name: value}`` (Real and Integer) with one call per type."""
+        reals = [(self.variable(k).valueReference, float(v)) for k, v in values.items()
+                 if self.variable(k).type == "Real"]
+        ints = [(self.variable(k).valueReference, int(v)) for k, v in values.items()
+                if self.variable(k).type in ("Integer", "Enumeration")]
+        other = [k for k in values if self.variable(k).type not in ("Real", "Integer", "Enumeration")]
+        if other:
+            raise FmuError(f"{self.name}: cannot set {', '.join(other)} (not Real or Integer)")
+        if reals:
+            vr = (ctypes.c_uint * len(reals))(*[r[0] for r in reals])
+            val = (ctypes.c_double * len(reals))(*[r[1] for r in reals])
+            self.check(self.set_real(self.c, vr, len(reals), val),
+                       "fmi2SetReal of the start values " + ", ".join(
+                           k for k in values if self.variables[k].type == "Real"))
+        if ints:
+            vr = (ctypes.c_uint * len(ints))(*[r[0] for r in ints])
+            val = (ctypes.c_int * len(ints))(*[r[1] for r in ints])
+            self.check(self.set_integer(self.c, vr, len(ints), val),
+                       "fmi2SetInteger of the start values " + ", ".join(
+                           k for k in values if self.variables[k].type != "Real"))
+
+    def get_values(self, names):
+        """Current values of Real/Integer variables as a dict (initialisation and reporting)."""
+        out = {}
+        for k in names:
+            v = self.variable(k)
+            vr = (ctypes.c_uint * 1)(v.valueReference)
+            if v.type == "Real":
+                val = (ctypes.c_double * 1)()
+                self.check(self.get_real(self.c, vr, 1, val), f"fmi2GetReal({k})")
+            else:
+                val = (ctypes.c_int * 1)()
+                self.check(self.get_integer(self.c, vr, 1, val), f"fmi2GetInteger({k})")
+            out[k] = val[0]
+        return out
+
+    def setup(self, t0, stop=None):
+        self.check(self._setup(self.c, 0, 0.0, t0, 0 if stop is None else 1,
+                               0.0 if stop is None else stop), "fmi2SetupExperiment", t0)
+
+    def enter_initialization(self, t0):
+        self.check(self._enter(self.c), "fmi2EnterInitializationMode", t0)
+        self.state = "initialization"
+
+    def exit_initialization(self, t0):
+        self.check(self._exit(self.c), "fmi2ExitInitializationMode", t0)
+        self.state = "step"
+
+    def close(self):
+        """Terminate and free the instance (not after a fatal status: the FMI forbids any call)."""
+        try:
+            if self.fmu is not None and self.state not in ("new", "fatal"):
+                if self.state == "step":
+                    self._terminate(self.c)
+                self.fmu.freeInstance()  # fmi2FreeInstance and unload the library
+            elif self.fmu is not None and self.state == "new":
+                self.fmu.freeLibrary()
+        finally:
+            self.state = "closed" if self.state != "fatal" else "fatal"
+            self.fmu = None
+            if self.unzip:
+                shutil.rmtree(self.unzip, ignore_errors=True)
+                # pythonfmu puts each instance's resources/ on sys.path: take ours off again
+                sys.path[:] = [p for p in sys.path if not str(p).startswith(self.unzip)]
+                self.unzip = None
+
+
+class _Slaves(dict):
+    """name -> :class:`Slave`; a context manager that frees them all."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def close(self):
+        fatal = any(s.state == "fatal" for s in self.values())
+        for s in self.values():
+            if fatal and s.state != "closed":
+                s.state = "fatal"   # after a fatal status no FMI call on any instance
+            s.close()
+
+
+class _DeferredInterrupt:
+    """Ctrl-C during a run is taken at the next chunk boundary instead of inside FMU code.
+
+    A ``KeyboardInterrupt`` raised while an FMU's Python code runs would be swallowed by the
+    pythonfmu wrapper and come back as an fmi2Fatal status; with this handler the master raises
+    it itself, between FMI calls, and the instances are freed normally.
+    """
+
+    def __enter__(self):
+        self.hit = False
+        self.old = None
+        if (threading.current_thread() is threading.main_thread()
+                and _signal.getsignal(_signal.SIGINT) is _signal.default_int_handler):
+            self.old = _signal.signal(_signal.SIGINT, self._handler)
+        return self
+
+    def _handler(self, signum, frame):
+        self.hit = True
+
+    def check(self):
+        if self.hit:
+            self.hit = False
+            raise KeyboardInterrupt
+
+    def __exit__(self, *exc):
+        if self.old is not None:
+            _signal.signal(_signal.SIGINT, self.old)
+        if exc[0] is None:
+            self.check()
+
+
+def _load(paths: dict) -> _Slaves:
+    log = _LogBook()
+    slaves = _Slaves()
+    slaves.log = log
+    try:
+        for name, path in paths.items():
+            slaves[name] = Slave(name, path, log)
+    except BaseException:
+        slaves.close()
+        raise
+    return slaves
+
+
+# -- start values from a model file ---------------------------------------------------------------
+
+def _same(a, b):
+    return a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b))
+
+
+def model_start_values(model, slaves) -> dict:
+    """``{component: {variable: value}}``: the model's parameters where they differ from the FMUs'.
+
+    Parameters are named ``<section>.<key>`` (lists ``<section>.<key>[i]``, 1-based); the model's
+    mode/inverse strings map to the Integer codes. A list whose length differs from what the FMU
+    was built with cannot be applied (the FMU's structure is fixed) and raises :class:`UserError`.
+    """
+    out = {n: {} for n in slaves}
+    for section, values in model.sections.items():
+        if section == "model":
+            continue
+        for key, value in values.items():
+            name = f"{section}.{key}"
+            if isinstance(value, list):
+                owner = next((n for n, s in slaves.items() if f"{name}[1]" in s.variables), None)
+                if owner is None:
+                    owner = SECTION_OWNER.get(section)
+                    if owner not in slaves:
+                        continue
+                have = 0
+                while f"{name}[{have + 1}]" in slaves[owner].variables:
+                    have += 1
+                if have != len(value):
+                    raise UserError(
+                        f"{name}: the model has {len(value)} values but {slaves[owner].path.name} "
+                        f"was built with {have} (list lengths are fixed when an FMU is built); "
+                        f"rebuild the FMUs from this model: python build_fmu.py --model "
+                        f"{model.path or 'FILE.toml'} --out-dir {slaves[owner].path.parent}")
+                for i, v in enumerate(value, 1):
+                    out[owner][f"{name}[{i}]"] = float(v)
+                continue
+            owner = next((n for n, s in slaves.items() if name in s.variables), None)
+            if owner is None:
+                if SECTION_OWNER.get(section) in slaves:
+                    raise UserError(f"{name}: {slaves[SECTION_OWNER[section]].path.name} has no such "
+                                    f"parameter; rebuild the FMUs ({BUILD_HINT})")
+                continue
+            if isinstance(value, str):
+                codes = ENUM_PARAMETERS.get(name)
+                if codes is None or value not in codes:
+                    continue
+                value = codes[value]
+            out[owner][name] = value
+    # keep only what differs from the FMUs' start values
+    for comp, values in out.items():
+        s = slaves[comp]
+        for name in list(values):
+            start = s.start_value(name)
+            v = values[name]
+            if start is not None and _same(float(start), float(v)):
+                del values[name]
+    return out
+
+
+def _reference_values(signal: Signal) -> dict:
+    if signal.kind == "table":
+        return {"reference.signal": SIGNALS["external"]}
+    return {"reference.signal": SIGNALS[signal.kind], "reference.amplitude": signal.amplitude,
+            "reference.offset": signal.offset, "reference.freq": signal.freq,
+            "reference.phase": signal.phase_deg}
+
+
+def _compensator_constant(model, slave, key):
+    if model is not None:
+        return float(model["compensator"][key])
+    v = slave.start_value(f"compensator.{key}")
+    if v is None:
+        raise FmuError(f"{slave.path}: no start value for compensator.{key}")
+    return float(v)
+
+
+# -- the master -----------------------------------------------------------------------------------
+
+def cosimulate(fmus, signal: Signal, stop_time: float, step: float = 1e-4, algorithm="gauss-seidel",
+               mode=None, inverse=None, model=None, record_step=None, sink=None, progress=None,
+               t0: float = 0.0, initial="consistent", chunk: int = CHUNK) -> SimResult:
+    """Co-simulate the three FMUs at a fixed communication step.
+
+    Parameters
+    ----------
+    fmus : folder or dict
+        A folder holding ``Actuator.fmu``, ``Sensor.fmu`` and ``Compensator.fmu`` (``None``: the
+        repository's ``models/``), or ``{name: path}``.
+    signal : Signal
+        The reference (a generator configures the Compensator's; a table is fed to ``x_ref``).
+    stop_time : float
+        End time [s].
+    step : float
+        Communication step ``H`` [s].
+    algorithm : {"gauss-seidel", "jacobi"}
+    mode, inverse : str, optional
+        Compensator mode (open, ff, fb, ff+fb) and inverse (static, dynamic); default: the
+        model's, or the FMU's start value without a model.
+    model : Model, optional
+        Its parameters are applied as start values (as ``--model`` in ``simulate``); ``None``
+        keeps the values the FMUs were built with.
+    record_step : float, optional
+        Recording interval [s], a multiple of ``step`` (default: every step).
+    sink : callable, optional
+        Called with each recorded chunk (an ``(n, 7)`` array in :data:`COLUMNS` order); nothing is
+        kept in memory and the result holds only the last chunk.
+    progress : callable, optional
+        ``progress(fraction)`` after each chunk.
+    t0 : float
+        Start time [s].
+    initial : {"consistent", "zero"}
+        ``consistent`` (default) propagates the initial outputs in Gauss-Seidel order (as
+        libcosim's initialisation does); ``zero`` starts every coupling from 0.0 and ignores
+        the FMUs' initial outputs, as ``fmpy.ssp.simulate_ssp`` does (for comparisons).
+
+    Returns a :class:`~piezo_fmu.simulate.SimResult` with the columns of ``simulate``;
+    ``info["us_per_step"]`` is the wall time per communication step [us].
+    """
+    if algorithm not in ALGORITHMS:
+        raise UserError(f"--algorithm: unknown {algorithm!r} ({', '.join(ALGORITHMS)})")
+    if initial not in ("consistent", "zero"):
+        raise UserError(f"initial: unknown {initial!r} (consistent, zero)")
+    H = float(step)
+    if not (H > 0 and math.isfinite(H)):
+        raise UserError(f"--step: must be a positive number of seconds, got {step}")
+    if not (math.isfinite(stop_time) and stop_time > t0):
+        raise UserError(f"--stop-time: must be after the start time {t0} s, got {stop_time}")
+    n_total = round((stop_time - t0) / H)
+    if n_total < 1:
+        raise UserError(f"--stop-time: {stop_time} s is shorter than one step of {H} s")
+    rec_every = 1 if record_step is None else max(1, round(record_step / H))
+    if mode is not None and mode not in MODES:
+        raise UserError(f"--mode: unknown {mode!r} ({', '.join(MODES)})")
+    if inverse is not None and inverse not in INVERSES:
+        raise UserError(f"--inverse: unknown {inverse!r} ({', '.join(INVERSES)})")
+    paths = fmu_paths(fmus)
+    t_end = t0 + n_total * H
+    w_start = time.perf_counter()
+
+    with _DeferredInterrupt() as interrupt, _load({n: paths[n] for n in ORDER}) as slaves:
+        comp = slaves["Compensator"]
+        # start values: model, then mode/inverse/reference
+        values = model_start_values(model, slaves) if model is not None else {n: {} for n in slaves}
+        cmode = mode or (model["compensator"]["mode"] if model is not None else None)
+        cinv = inverse or (model["compensator"]["inverse"] if model is not None else None)
+        if cmode is not None:
+            values["Compensator"]["compensator.mode"] = MODES[cmode]
+        if cinv is not None:
+            values["Compensator"]["compensator.inverse"] = INVERSES[cinv]
+        values["Compensator"].update(_reference_values(signal))
+        use_ext = signal.kind == "table"
+        if use_ext:
+            k_ideal = _compensator_constant(model, comp, "k_ideal")
+            k_amp = _compensator_constant(model, comp, "k_amp")
+        for name, s in slaves.items():
+            if values[name]:
+                s.set_values(values[name])
+            s.setup(t0, t_end)
+        for s in slaves.values():
+            s.enter_initialization(t0)
+        if cmode is None:   # the FMU's own setting (its start value)
+            cmode = {v: k for k, v in MODES.items()}.get(comp.start_value("compensator.mode"), "?")
+        if cinv is None:
+            cinv = {v: k for k, v in INVERSES.items()}.get(comp.start_value("compensator.inverse"), "?")
+
+        plan = _Plan(slaves)
+        ext = plan.external  # (input array, index) of Compensator.x_ref, or None
+        # initialisation in Gauss-Seidel order: inputs from the outputs already known
+        x0 = float(signal.x_ref_at(t0, k_ideal, k_amp)) if use_ext else None
+        for p in plan.steps:
+            if initial == "zero":  # every coupling starts from 0.0 (fmpy.ssp)
+                p.slave.exit_initialization(t0)
+                for j in range(p.n_out):
+                    p.out[j] = 0.0
+                continue
+            forward = [(i, src, j) for i, src, j, back in p.copies if not back]
+            for i, src, j in forward:
+                p.inp[i] = src[j]
+            if use_ext and p.slave is comp:
+                ext[0][ext[1]] = x0
+            if forward or (use_ext and p.slave is comp):
+                p.slave.check(p.slave.set_real(p.slave.c, p.in_vr, p.n_in, p.inp),
+                              "fmi2SetReal (initial inputs)", t0)
+            p.slave.exit_initialization(t0)
+            p.slave.check(p.slave.get_real(p.slave.c, p.out_vr, p.n_out, p.out),
+                          "fmi2GetReal (initial outputs)", t0)
+        init_s = time.perf_counter() - w_start
+
+        keep = [] if sink is None else None
+        first = plan.record_row(t0)
+        if keep is not None:
+            keep.append(first)
+        else:
+            sink(first)
+        last = first
+        chunk = max(rec_every, (max(1, int(chunk)) // rec_every) * rec_every)
+        loop = plan.gauss_seidel if algorithm == "gauss-seidel" else plan.jacobi
+        done = 0
+        wall = 0.0
+        while done < n_total:
+            n = min(chunk, n_total - done)
+            xr = (signal.x_ref_at(t0 + H * np.arange(done + 1, done + n + 1), k_ideal, k_amp).tolist()
+                  if use_ext else None)
+            rows = n // rec_every
+            buf = (ctypes.c_double * (7 * max(rows, 1)))()
+            w0 = time.perf_counter()
+            loop(done, n, t0, H, rec_every, xr, buf)
+            wall += time.perf_counter() - w0
+            done += n
+            last = np.frombuffer(buf, dtype=float, count=7 * rows).reshape(rows, 7)
+            if keep is not None:
+                keep.append(last)
+            else:
+                sink(last)
+            if progress is not None:
+                progress(done / n_total)
+            interrupt.check()
+
+    table = np.vstack(keep) if keep is not None else last
+    data = {name: table[:, i] for i, name in enumerate(COLUMNS)}
+    info = {"mode": cmode, "inverse": cinv, "signal": signal.describe(), "units": dict(UNITS),
+            "algorithm": algorithm, "initial": initial, "us_per_step": 1e6 * wall / n_total, "init_s": init_s,
+            "total_s": time.perf_counter() - w_start, "fmus": {k: str(v) for k, v in paths.items()}}
+    return SimResult(data, f"fmpy {algorithm}", H, wall, n_total, info)
+
+
+class _Step:
+    """The per-component data of the loop: slave, bound arrays and where its inputs come from."""
+
+    __slots__ = (
+        "copies",
+        "in_names",
+        "in_vr",
+        "inp",
+        "n_in",
+        "n_out",
+        "out",
+        "out_names",
+        "out_vr",
+        "slave",
+    )
+
+
+class _Plan:
+    """Bound arrays for all components and the two loop bodies (built from connections.py)."""
+
+    def __init__(self, slaves):
+        self.steps = []
+        by_name = {}
+        for name in ORDER:
+            s = slaves[name]
+            p = _Step()
+            p.slave = s
+            p.in_names = [port.name for port in COMPONENTS[name] if port.causality == "input"]
+            p.out_names = [port.name for port in COMPONENTS[name] if port.causality == "output"]
+            p.in_vr, p.inp, p.n_in = s.bind(p.in_names)
+            p.out_vr, p.out, p.n_out = s.bind(p.out_names)
+            p.copies = []
+            by_name[name] = p
+            self.steps.append(p)
+        position = {n: i for i, n in enumerate(ORDER)}
+        for a, av, b, bv in CONNECTIONS:
+            src, dst = by_name[a], by_name[b]
+            # back: the source comes later in the Gauss-Seidel order (its value is from t_k)
+            dst.copies.append((dst.in_names.index(bv), src.out, src.out_names.index(av),
+                               position[a] >= position[b]))
+        self.external = None
+        for comp_name, var in EXTERNAL_INPUTS:
+            p = by_name[comp_name]
+            self.external = (p.inp, p.in_names.index(var))
+        if len(EXTERNAL_INPUTS) != 1 or EXTERNAL_INPUTS[0][0] != "Compensator":
+            raise NotImplementedError("the master feeds exactly one external input, Compensator.x_ref")
+        self.ext_index = self.external[1]
+        self.ext_step = self.steps.index(by_name["Compensator"])
+        rec = []
+        for col in COLUMNS[1:]:
+            _, comp_name, var = next(r for r in RECORDED if r[0] == col)
+            p = by_name[comp_name]
+            rec.append((p.out, p.out_names.index(var)))
+        self.rec = rec
+
+    def record_row(self, t):
+        return np.array([[t] + [arr[i] for arr, i in self.rec]])
+
+    def _bodies(self):
+        return [(p.slave, p.slave.c, p.slave.set_real, p.slave.do_step, p.slave.get_real,
+                 p.in_vr, p.n_in, p.inp, p.out_vr, p.n_out, p.out,
+                 tuple((i, src, j) for i, src, j, _ in p.copies), k == self.ext_step)
+                for k, p in enumerate(self.steps)]
+
+    def gauss_seidel(self, k0, n, t0, H, rec_every, xr, buf):
+        bodies = self._bodies()
+        (a1, i1), (a2, i2), (a3, i3), (a4, i4), (a5, i5), (a6, i6) = self.rec
+        ei = self.ext_index
+        use_ext = xr is not None
+        row = 0
+        for k in range(n):
+            t = t0 + (k0 + k) * H
+            for s, c, setr, dostep, getr, in_vr, n_in, inp, out_vr, n_out, out, copies, ext in bodies:
+                for i, src, j in copies:
+                    inp[i] = src[j]
+                if ext and use_ext:
+                    inp[ei] = xr[k]
+                if n_in:
+                    st = setr(c, in_vr, n_in, inp)
+                    if st:
+                        s.check(st, "fmi2SetReal", t)
+                st = dostep(c, t, H, 1)
+                if st:
+                    s.check(st, "fmi2DoStep", t)
+                st = getr(c, out_vr, n_out, out)
+                if st:
+                    s.check(st, "fmi2GetReal", t)
+            if (k + 1) % rec_every == 0:
+                b = 7 * row
+                buf[b] = t0 + (k0 + k + 1) * H
+                buf[b + 1] = a1[i1]
+                buf[b + 2] = a2[i2]
+                buf[b + 3] = a3[i3]
+                buf[b + 4] = a4[i4]
+                buf[b + 5] = a5[i5]
+                buf[b + 6] = a6[i6]
+                row += 1
+
+    def jacobi(self, k0, n, t0, H, rec_every, xr, buf):
+        bodies = self._bodies()
+        (a1, i1), (a2, i2), (a3, i3), (a4, i4), (a5, i5), (a6, i6) = self.rec
+        ei = self.ext_index
+        use_ext = xr is not None
+        row = 0
+        for k in range(n):
+            t = t0 + (k0 + k) * H
+            # all inputs from the outputs at t (nothing has stepped yet in this step)
+            for s, c, setr, dostep, getr, in_vr, n_in, inp, out_vr, n_out, out, copies, ext in bodies:
+                for i, src, j in copies:
+                    inp[i] = src[j]
+                if ext and use_ext:
+                    inp[ei] = xr[k]
+                if n_in:
+                    st = setr(c, in_vr, n_in, inp)
+                    if st:
+                        s.check(st, "fmi2SetReal", t)
+            for s, c, setr, dostep, getr, in_vr, n_in, inp, out_vr, n_out, out, copies, ext in bodies:
+                st = dostep(c, t, H, 1)
+                if st:
+                    s.check(st, "fmi2DoStep", t)
+                st = getr(c, out_vr, n_out, out)
+                if st:
+                    s.check(st, "fmi2GetReal", t)
+            if (k + 1) % rec_every == 0:
+                b = 7 * row
+                buf[b] = t0 + (k0 + k + 1) * H
+                buf[b + 1] = a1[i1]
+                buf[b + 2] = a2[i2]
+                buf[b + 3] = a3[i3]
+                buf[b + 4] = a4[i4]
+                buf[b + 5] = a5[i5]
+                buf[b + 6] = a6[i6]
+                row += 1
+
+
+# -- one component driven by input sequences --------------------------------------------------------
+
+def run_component(fmu, name, inputs: dict, outputs, step, t0=0.0, model=None, start_values=None):
+    """Co-simulate one FMU alone with its inputs held over each communication step.
+
+    ``inputs`` maps input names to sequences ``u[k]`` applied over ``t0 + k step -> t0 + (k+1) step``
+    (all of one length ``n``). Returns ``{output: array of n + 1 values}`` (the initial outputs,
+    then after each step). Uses the master's FMU binding (batched raw ctypes calls).
+    """
+    paths = fmu_paths({name: fmu}, names=(name,))
+    H = float(step)
+    names = list(inputs)
+    seqs = [np.asarray(inputs[k], dtype=float).tolist() for k in names]
+    n = len(seqs[0]) if seqs else 0
+    if any(len(s) != n for s in seqs):
+        raise UserError("run_component: all input sequences must have the same length")
+    with _load(paths) as slaves:
+        s = slaves[name]
+        values = model_start_values(model, slaves)[name] if model is not None else {}
+        values.update(start_values or {})
+        if values:
+            s.set_values(values)
+        s.setup(t0, t0 + n * H)
+        s.enter_initialization(t0)
+        in_vr, inp, n_in = s.bind(names)
+        out_vr, out, n_out = s.bind(list(outputs))
+        if n_in:
+            for j, seq in enumerate(seqs):
+                inp[j] = seq[0] if n else 0.0
+            s.check(s.set_real(s.c, in_vr, n_in, inp), "fmi2SetReal (initial inputs)", t0)
+        s.exit_initialization(t0)
+        res = np.empty((n + 1, n_out))
+        s.check(s.get_real(s.c, out_vr, n_out, out), "fmi2GetReal", t0)
+        res[0] = out[:n_out]
+        setr, dostep, getr, c = s.set_real, s.do_step, s.get_real, s.c
+        for k in range(n):
+            t = t0 + k * H
+            for j in range(n_in):
+                inp[j] = seqs[j][k]
+            if n_in:
+                st = setr(c, in_vr, n_in, inp)
+                if st:
+                    s.check(st, "fmi2SetReal", t)
+            st = dostep(c, t, H, 1)
+            if st:
+                s.check(st, "fmi2DoStep", t)
+            st = getr(c, out_vr, n_out, out)
+            if st:
+                s.check(st, "fmi2GetReal", t)
+            res[k + 1] = out[:n_out]
+    return {o: res[:, i] for i, o in enumerate(outputs)}
+
+
+# -- the command ----------------------------------------------------------------------------------
+
+def run_cli(args):
+    """``piezo-fmu cosim``: as ``simulate``, with the three FMUs coupled by this master."""
+    from .cli import CSV_HEADER, Progress, _csv_sink, plot_run, say, signal_from_args, summarize
+    from .io import atomic_writer, check_writable
+    from .model import load_model
+
+    model = load_model(args.model)
+    signal = signal_from_args(args)
+    fmus = fmu_paths(args.fmu_dir)
+    if args.out:
+        check_writable(args.out, args.force)
+    if args.plot:
+        check_writable(args.plot, args.force)
+    bar = Progress("cosim", args.quiet)
+    kw = {"step": args.step, "algorithm": args.algorithm, "mode": args.mode, "inverse": args.inverse,
+          "model": model, "record_step": args.record_step, "progress": bar}
+    if args.out and not args.plot:
+        stats = {"n": 0, "sum_abs": 0.0, "sum_sq": 0.0, "max": 0.0}
+
+        def sink_stats(rows, write):
+            write(rows)
+            e = rows[:, 2] - rows[:, 1]
+            stats["n"] += e.size
+            stats["sum_abs"] += float(np.sum(np.abs(e)))
+            stats["sum_sq"] += float(np.sum(e * e))
+            stats["max"] = max(stats["max"], float(np.max(np.abs(e))) if e.size else 0.0)
+
+        with atomic_writer(args.out, "w", force=args.force) as fh:
+            fh.write(CSV_HEADER)
+            write = _csv_sink(fh)
+            res = cosimulate(fmus, signal, args.stop_time, sink=lambda rows: sink_stats(rows, write), **kw)
+        n = max(stats["n"], 1)
+        summary = {"max_um": stats["max"], "avg_um": stats["sum_abs"] / n,
+                   "rms_um": math.sqrt(stats["sum_sq"] / n)}
+    else:
+        res = cosimulate(fmus, signal, args.stop_time, **kw)
+        summary = summarize(res.data)
+        if args.out:
+            with atomic_writer(args.out, "w", force=args.force) as fh:
+                fh.write(CSV_HEADER)
+                _csv_sink(fh)(np.column_stack([res.data[c] for c in COLUMNS]))
+        if args.plot:
+            plot_run(res.data, args.plot, f"co-simulation ({res.info['algorithm']}), {res.info['mode']}, "
+                                          f"{res.info['signal']}", args.force)
+    say(args, f"co-simulated {res.n_steps} steps of {res.step:g} s ({res.info['algorithm']}, 3 FMUs, "
+              f"{res.info['us_per_step']:.0f} us per step); tracking error max {summary['max_um']:.4f} um, "
+              f"avg {summary['avg_um']:.4f} um, rms {summary['rms_um']:.4f} um")
+    if args.out:
+        say(args, f"wrote {args.out}")
+    return 0
