@@ -544,7 +544,7 @@ def cosimulate(fmus, signal: Signal, stop_time: float, step: float = 1e-4, algor
         if cinv is None:
             cinv = {v: k for k, v in INVERSES.items()}.get(comp.start_value("compensator.inverse"), "?")
 
-        plan = _Plan(slaves)
+        plan = _Plan.system(slaves)
         ext = plan.external  # (input array, index) of Compensator.x_ref, or None
         # initialisation in Gauss-Seidel order: inputs from the outputs already known
         x0 = float(signal.x_ref_at(t0, k_ideal, k_amp)) if use_ext else None
@@ -623,42 +623,53 @@ class _Step:
 
 
 class _Plan:
-    """Bound arrays for all components and the two loop bodies (built from connections.py)."""
+    """Bound arrays for a set of components and the two loop bodies.
 
-    def __init__(self, slaves):
+    Generic over the components (``order``: names in Gauss-Seidel order; ``ports``: name ->
+    (input names, output names)), the ``connections`` (from component, variable, to component,
+    variable), one optional ``external`` input (component, variable) fed from a table, and the
+    ``recorded`` outputs ((component, variable), ...). :meth:`system` builds the piezo system from
+    :mod:`piezo_fmu.connections`; the benchmark steps its pass-through floor with the same loops.
+    """
+
+    def __init__(self, slaves, order, ports, connections, external, recorded):
         self.steps = []
         by_name = {}
-        for name in ORDER:
+        for name in order:
             s = slaves[name]
             p = _Step()
             p.slave = s
-            p.in_names = [port.name for port in COMPONENTS[name] if port.causality == "input"]
-            p.out_names = [port.name for port in COMPONENTS[name] if port.causality == "output"]
+            p.in_names, p.out_names = (list(x) for x in ports[name])
             p.in_vr, p.inp, p.n_in = s.bind(p.in_names)
             p.out_vr, p.out, p.n_out = s.bind(p.out_names)
             p.copies = []
             by_name[name] = p
             self.steps.append(p)
-        position = {n: i for i, n in enumerate(ORDER)}
-        for a, av, b, bv in CONNECTIONS:
+        position = {n: i for i, n in enumerate(order)}
+        for a, av, b, bv in connections:
             src, dst = by_name[a], by_name[b]
             # back: the source comes later in the Gauss-Seidel order (its value is from t_k)
             dst.copies.append((dst.in_names.index(bv), src.out, src.out_names.index(av),
                                position[a] >= position[b]))
         self.external = None
-        for comp_name, var in EXTERNAL_INPUTS:
-            p = by_name[comp_name]
-            self.external = (p.inp, p.in_names.index(var))
-        if len(EXTERNAL_INPUTS) != 1 or EXTERNAL_INPUTS[0][0] != "Compensator":
-            raise NotImplementedError("the master feeds exactly one external input, Compensator.x_ref")
-        self.ext_index = self.external[1]
-        self.ext_step = self.steps.index(by_name["Compensator"])
-        rec = []
-        for col in COLUMNS[1:]:
-            _, comp_name, var = next(r for r in RECORDED if r[0] == col)
-            p = by_name[comp_name]
-            rec.append((p.out, p.out_names.index(var)))
-        self.rec = rec
+        self.ext_index, self.ext_step = 0, -1
+        if external is not None:
+            p = by_name[external[0]]
+            self.external = (p.inp, p.in_names.index(external[1]))
+            self.ext_index = self.external[1]
+            self.ext_step = self.steps.index(p)
+        self.rec = [(by_name[c].out, by_name[c].out_names.index(v)) for c, v in recorded]
+        self.width = 1 + len(self.rec)
+
+    @classmethod
+    def system(cls, slaves):
+        """The actuator -> sensor -> compensator system of :mod:`piezo_fmu.connections`."""
+        if len(EXTERNAL_INPUTS) != 1:
+            raise NotImplementedError("the master feeds exactly one external input")
+        ports = {n: ([p.name for p in COMPONENTS[n] if p.causality == "input"],
+                     [p.name for p in COMPONENTS[n] if p.causality == "output"]) for n in ORDER}
+        recorded = [next((c, v) for col2, c, v in RECORDED if col2 == col) for col in COLUMNS[1:]]
+        return cls(slaves, ORDER, ports, CONNECTIONS, EXTERNAL_INPUTS[0], recorded)
 
     def record_row(self, t):
         return np.array([[t] + [arr[i] for arr, i in self.rec]])
@@ -669,11 +680,18 @@ class _Plan:
                  tuple((i, src, j) for i, src, j, _ in p.copies), k == self.ext_step)
                 for k, p in enumerate(self.steps)]
 
+    def _record(self, buf, row, t):
+        b = self.width * row
+        buf[b] = t
+        for j, (arr, i) in enumerate(self.rec, 1):
+            buf[b + j] = arr[i]
+
     def gauss_seidel(self, k0, n, t0, H, rec_every, xr, buf):
+        """Each component in turn: inputs from the outputs just computed, step, outputs."""
         bodies = self._bodies()
-        (a1, i1), (a2, i2), (a3, i3), (a4, i4), (a5, i5), (a6, i6) = self.rec
         ei = self.ext_index
         use_ext = xr is not None
+        record = self._record
         row = 0
         for k in range(n):
             t = t0 + (k0 + k) * H
@@ -693,25 +711,18 @@ class _Plan:
                 if st:
                     s.check(st, "fmi2GetReal", t)
             if (k + 1) % rec_every == 0:
-                b = 7 * row
-                buf[b] = t0 + (k0 + k + 1) * H
-                buf[b + 1] = a1[i1]
-                buf[b + 2] = a2[i2]
-                buf[b + 3] = a3[i3]
-                buf[b + 4] = a4[i4]
-                buf[b + 5] = a5[i5]
-                buf[b + 6] = a6[i6]
+                record(buf, row, t0 + (k0 + k + 1) * H)
                 row += 1
 
     def jacobi(self, k0, n, t0, H, rec_every, xr, buf):
+        """All inputs from the outputs at t_k, then every component steps."""
         bodies = self._bodies()
-        (a1, i1), (a2, i2), (a3, i3), (a4, i4), (a5, i5), (a6, i6) = self.rec
         ei = self.ext_index
         use_ext = xr is not None
+        record = self._record
         row = 0
         for k in range(n):
             t = t0 + (k0 + k) * H
-            # all inputs from the outputs at t (nothing has stepped yet in this step)
             for s, c, setr, dostep, getr, in_vr, n_in, inp, out_vr, n_out, out, copies, ext in bodies:
                 for i, src, j in copies:
                     inp[i] = src[j]
@@ -729,14 +740,7 @@ class _Plan:
                 if st:
                     s.check(st, "fmi2GetReal", t)
             if (k + 1) % rec_every == 0:
-                b = 7 * row
-                buf[b] = t0 + (k0 + k + 1) * H
-                buf[b + 1] = a1[i1]
-                buf[b + 2] = a2[i2]
-                buf[b + 3] = a3[i3]
-                buf[b + 4] = a4[i4]
-                buf[b + 5] = a5[i5]
-                buf[b + 6] = a6[i6]
+                record(buf, row, t0 + (k0 + k + 1) * H)
                 row += 1
 
 

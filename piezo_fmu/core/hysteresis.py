@@ -38,20 +38,23 @@ def pi_step(v, r, w, z):
 
     ``r``, ``w`` and ``z`` are indexable sequences of equal length (Python lists for speed in
     CPython, NumPy arrays under numba); ``z`` (the operator outputs, i.e. the hysteresis memory)
-    is updated in place. No allocation: this is the per-step kernel.
+    is updated in place, and only where it moves. No allocation: this is the per-step kernel.
     """
     y = 0.0
-    for i in range(len(r)):
-        lo = v - r[i]
+    i = 0
+    for ri in r:
         zi = z[i]
+        lo = v - ri
         if zi < lo:
             zi = lo
+            z[i] = zi
         else:
-            hi = v + r[i]
+            hi = v + ri
             if zi > hi:
                 zi = hi
-        z[i] = zi
+                z[i] = zi
         y += w[i] * zi
+        i += 1
     return y
 
 

@@ -56,18 +56,36 @@ def amp_step(ua, target, tau, slew, h, decay):
 def lti_advance(phi, g, cd, xs, u, tmp):
     """Advance an LTI block whose input moves linearly from its previous value to ``u``.
 
-    ``phi``: n x n; ``g``: 2 x n (rows G0, G1); ``cd``: n + 1 (C then D); ``xs``: n + 1 (state then
-    previous input), updated in place; ``tmp``: scratch of length n. Returns the output ``C x + D u``.
+    Flat, row-major data (no row views: cheap in CPython, no reference counting in numba):
+    ``phi``: n*n; ``g``: 2n (G0 then G1); ``cd``: n + 1 (C then D); ``xs``: n + 1 (state then
+    previous input), updated in place; ``tmp``: scratch of length n. Returns ``C x + D u``.
+    Orders 0-2 (gains, first-order filters, the mechanics) have unrolled paths with the generic
+    summation order.
     """
     n = len(tmp)
     u0 = xs[n]
-    g0 = g[0]
-    g1 = g[1]
+    if n == 0:
+        xs[0] = u
+        return cd[0] * u
+    if n == 1:
+        a = g[0] * u0 + g[1] * u + phi[0] * xs[0]
+        xs[0] = a
+        xs[1] = u
+        return cd[1] * u + cd[0] * a
+    if n == 2:
+        x0 = xs[0]
+        x1 = xs[1]
+        a = g[0] * u0 + g[2] * u + phi[0] * x0 + phi[1] * x1
+        b = g[1] * u0 + g[3] * u + phi[2] * x0 + phi[3] * x1
+        xs[0] = a
+        xs[1] = b
+        xs[2] = u
+        return cd[2] * u + cd[0] * a + cd[1] * b
     for i in range(n):
-        acc = g0[i] * u0 + g1[i] * u
-        row = phi[i]
+        acc = g[i] * u0 + g[n + i] * u
+        base = i * n
         for j in range(n):
-            acc += row[j] * xs[j]
+            acc += phi[base + j] * xs[j]
         tmp[i] = acc
     y = cd[n] * u
     for i in range(n):
@@ -80,7 +98,8 @@ def lti_advance(phi, g, cd, xs, u, tmp):
 class LTIData:
     """Discrete data of a SISO transfer function for :func:`lti_advance`, with state.
 
-    ``num``/``den`` in descending powers of ``s``. ``prepare(h)`` (re)discretises (FOH).
+    ``num``/``den`` in descending powers of ``s``. ``prepare(h)`` (re)discretises (FOH) into the
+    flat lists ``phi`` (n*n, row-major) and ``g`` (G0 then G1).
     """
 
     __slots__ = ("num", "den", "a", "b", "phi", "g", "cd", "xs", "tmp", "h")
@@ -94,8 +113,8 @@ class LTIData:
         self.cd = [float(v) for v in c.ravel()] + [float(d[0, 0])]
         self.xs = [0.0] * (n + 1)
         self.tmp = [0.0] * n
-        self.phi = [[0.0] * n for _ in range(n)]
-        self.g = [[0.0] * n, [0.0] * n]
+        self.phi = [0.0] * (n * n)
+        self.g = [0.0] * (2 * n)
         self.h = None
 
     @property
@@ -108,10 +127,8 @@ class LTIData:
         n = self.order
         if n:
             phi, g0, g1 = discretize(self.a, self.b, h, "foh")
-            for i in range(n):
-                self.phi[i][:] = [float(v) for v in phi[i]]
-            self.g[0][:] = [float(v) for v in g0.ravel()]
-            self.g[1][:] = [float(v) for v in g1.ravel()]
+            self.phi[:] = [float(v) for v in phi.ravel()]
+            self.g[:] = [float(v) for v in g0.ravel()] + [float(v) for v in g1.ravel()]
         self.h = h
 
     def settle(self, u):
@@ -221,6 +238,8 @@ class Actuator:
         self.mech = LTIData(*mechanics_tf(self.m, self.c, self.k_a, self.k_f, self.resonance))
         self.out = [0.0, 0.0, 0.0, 0.0]
         self._h = None
+        self._adv_step = None
+        self._adv_n = 1
         self.time = 0.0
 
     # -- configuration ---------------------------------------------------------------------
@@ -257,10 +276,16 @@ class Actuator:
 
     def advance(self, uc, step):
         """Advance a communication step ``step`` [s] (split by ``max_step``); returns ``x`` [um]."""
-        n = self.substeps(step)
-        h = step / n
-        for _ in range(n):
-            self.step(uc, h)
+        if step != self._adv_step:
+            self._adv_step = step
+            self._adv_n = self.substeps(step)
+        n = self._adv_n
+        if n == 1:
+            self.step(uc, step)
+        else:
+            h = step / n
+            for _ in range(n):
+                self.step(uc, h)
         return self.out[0]
 
     @property
@@ -433,21 +458,23 @@ class NoiseSource:
     def reset(self):
         self._gen = np.random.Generator(np.random.PCG64(self.seed))
         self._arr = np.empty(0)
-        self._buf = []
+        self._buf = None
         self._pos = 0
         self._block_state = None
 
     def _refill(self):
         self._block_state = self._gen.bit_generator.state
         self._arr = self.std * self._gen.standard_normal(self.BLOCK)
-        self._buf = self._arr.tolist()
+        self._buf = None            # the list view for next() is made when needed
         self._pos = 0
 
     def next(self):
         if self.std == 0.0:
             return 0.0
-        if self._pos >= len(self._buf):
+        if self._pos >= len(self._arr):
             self._refill()
+        if self._buf is None:
+            self._buf = self._arr.tolist()     # floats from a list: fast per-sample access
         v = self._buf[self._pos]
         self._pos += 1
         return v
@@ -459,16 +486,16 @@ class NoiseSource:
         out = np.empty(n)
         done = 0
         while done < n:
-            if self._pos >= len(self._buf):
+            if self._pos >= len(self._arr):
                 self._refill()
-            m = min(n - done, len(self._buf) - self._pos)
+            m = min(n - done, len(self._arr) - self._pos)
             out[done:done + m] = self._arr[self._pos:self._pos + m]
             self._pos += m
             done += m
         return out
 
     def get_state(self):
-        return {"block_state": self._block_state, "pos": self._pos, "filled": bool(self._buf)}
+        return {"block_state": self._block_state, "pos": self._pos, "filled": len(self._arr) > 0}
 
     def set_state(self, s):
         self.reset()

@@ -1,0 +1,301 @@
+"""``piezo-fmu bench``: speed figures, measured side by side in one run.
+
+1. ``floor_us_per_step``: three instances of a trivial pass-through FMU built the same way
+   (pythonfmu, the same slave base) in a ring, stepped by the co-simulation master's own
+   Gauss-Seidel loop at H = 1e-4 s: the cost of the FMI machinery alone.
+2. ``cosim_us_per_step``: the closed loop of the three real FMUs through the same loop
+   (the paper's 10 Hz experiment, H = 1e-4 s); ``cosim_to_floor`` (target <= 1.5) and
+   ``cosim_realtime_factor`` = simulated / wall time (target >= 3).
+3. ``monolithic_samples_per_s``: the monolithic closed loop at an internal step of 1e-5 s, end to
+   end (numba engine; the interpreted engine as ``monolithic_python_samples_per_s``), and
+   ``monolithic_speedup_vs_cosim`` in wall time per simulated second (target >= 100).
+4. ``pi_ns_per_sample_operator``: the PI step kernel (compiled), forward and inverse (mean of the
+   two; each also reported), plus the interpreted kernel and the vectorised scan.
+5. ``diagnose_s``: ``diagnose`` on a synthetic recording of 20 s at 10 kHz with two channels.
+
+Every figure is the best of a few repetitions (the machine's other load only slows runs down).
+``--size tiny`` runs each part briefly so the test suite can check the benchmark keeps working.
+"""
+from __future__ import annotations
+
+import ctypes
+import importlib.util
+import json
+import math
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import UserError
+
+__all__ = ["run_bench", "register", "KEYS", "load_builder"]
+
+KEYS = ("floor_us_per_step", "cosim_us_per_step", "cosim_to_floor", "cosim_realtime_factor",
+        "monolithic_samples_per_s", "monolithic_speedup_vs_cosim", "pi_ns_per_sample_operator",
+        "diagnose_s")
+H = 1e-4
+ROOT = Path(__file__).resolve().parent.parent
+
+SIZES = {  # steps per co-simulation run, repetitions, monolithic seconds, PI samples, diagnose recording
+    "full": dict(steps=20000, reps=3, mono_s=2.0, mono_py_s=0.2, pi_n=200_000, diag=(20.0, 10_000.0)),
+    "tiny": dict(steps=300, reps=1, mono_s=0.02, mono_py_s=0.01, pi_n=2_000, diag=(0.6, 2_000.0)),
+}
+
+
+def load_builder():
+    """The ``build_fmu`` module of this source tree (a top-level script beside the package)."""
+    path = ROOT / "build_fmu.py"
+    if not path.exists():
+        raise UserError(f"{path}: not found; the benchmark builds FMUs from the source tree")
+    spec = importlib.util.spec_from_file_location("piezo_fmu_build_fmu", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _best(fn, reps):
+    return min(fn() for _ in range(reps))
+
+
+def _floor_us(passthrough, steps, reps):
+    from . import cosim
+
+    names = ("P1", "P2", "P3")
+    slaves = cosim._load({n: passthrough for n in names})
+    with slaves:
+        for s in slaves.values():
+            s.setup(0.0)
+            s.enter_initialization(0.0)
+        for s in slaves.values():
+            s.exit_initialization(0.0)
+        ring = [(a, "y", b, "u") for a, b in zip(names, names[1:] + names[:1])]
+        plan = cosim._Plan(slaves, names, {n: (["u"], ["y"]) for n in names}, ring, None,
+                           [(n, "y") for n in names])
+        rec_every = 10
+        buf = (ctypes.c_double * (plan.width * (steps // rec_every + 1)))()
+        done = [0]
+
+        def once():
+            t0 = time.perf_counter()
+            plan.gauss_seidel(done[0], steps, 0.0, H, rec_every, None, buf)
+            done[0] += steps
+            return (time.perf_counter() - t0) / steps * 1e6
+
+        return _best(once, reps)
+
+
+def _cosim_us(fmus, steps, reps):
+    from .cosim import cosimulate
+    from .simulate import Signal
+
+    def once():
+        res = cosimulate(fmus, Signal("sine", 45.0, 45.0, 10.0), steps * H, H, record_step=10 * H)
+        return res.info["us_per_step"]
+
+    return _best(once, reps)
+
+
+def _monolithic(model, seconds, engine, reps):
+    from .simulate import Signal, simulate
+
+    sig = Signal("sine", 45.0, 45.0, 10.0)
+    simulate(model, sig, 0.002, step=1e-5, engine=engine)        # compile / warm up
+
+    def once():
+        t0 = time.perf_counter()
+        res = simulate(model, sig, seconds, step=1e-5, record_step=1e-4, engine=engine)
+        return res.n_steps / (time.perf_counter() - t0)
+
+    return max(once() for _ in range(reps))
+
+
+def _pi_figures(model, n, reps):
+    """ns per sample and operator: compiled kernel, interpreted kernel, vectorised scan."""
+    from .core.hysteresis import pi_step, play_scan
+    from .simulate import compiled_kernels, numba_available
+
+    fwd = model.hysteresis("hysteresis")
+    inv = fwd.inverse()
+    rng = np.random.default_rng(0)
+    u = 45.0 + 40.0 * np.sin(np.cumsum(rng.uniform(0.0, 0.02, n)))
+    out = {}
+    for label, m, x in (("forward", fwd, u / fwd.in_scale), ("inverse", inv, fwd.apply(u) / inv.in_scale)):
+        r, w = np.array(m.thresholds), np.array(m.weights)
+        ops = n * m.n
+        if numba_available():
+            import numba
+
+            kern = compiled_kernels()["pi_step"]
+
+            @numba.njit(cache=False)
+            def run(v, r, w, z, y):
+                for k in range(v.size):
+                    y[k] = kern(v[k], r, w, z)
+
+            y = np.empty_like(x)
+            run(x[:10], r, w, np.zeros_like(r), y)          # compile
+
+            def compiled():
+                t0 = time.perf_counter()
+                run(x, r, w, np.zeros_like(r), y)
+                return (time.perf_counter() - t0) / ops * 1e9
+
+            out[f"pi_{label}_ns_per_sample_operator"] = _best(compiled, reps)
+        rl, wl, xl = list(r), list(w), x[: max(1, n // 20)].tolist()
+
+        def interpreted():
+            z = [0.0] * len(rl)
+            t0 = time.perf_counter()
+            for v in xl:
+                pi_step(v, rl, wl, z)
+            return (time.perf_counter() - t0) / (len(xl) * len(rl)) * 1e9
+
+        def scan():
+            t0 = time.perf_counter()
+            play_scan(x, r) @ w
+            return (time.perf_counter() - t0) / ops * 1e9
+
+        out[f"pi_{label}_interpreted_ns_per_sample_operator"] = _best(interpreted, reps)
+        out[f"pi_{label}_scan_ns_per_sample_operator"] = _best(scan, reps)
+    key = "pi_{}_ns_per_sample_operator" if numba_available() else "pi_{}_interpreted_ns_per_sample_operator"
+    out["pi_ns_per_sample_operator"] = 0.5 * (out[key.format("forward")] + out[key.format("inverse")])
+    return out
+
+
+def _diagnose_s(model_path, seconds, fs, workdir):
+    from .diagnose import diagnose
+    from .diagnose.synth import make_case, write_recording
+
+    case = make_case(7, effects=("creep",), fs=fs, duration=seconds, channels=("x", "us"))
+    rec = Path(workdir) / "bench_recording.csv"
+    write_recording(rec, case, force=True)
+    t0 = time.perf_counter()
+    diagnose([str(rec)], model_path, Path(workdir) / "diagnosis", force=True)
+    return time.perf_counter() - t0
+
+
+def _machine():
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    import fmpy
+    import numpy
+    import pythonfmu
+
+    info = {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
+            "numpy": numpy.__version__, "fmpy": fmpy.__version__, "pythonfmu": pythonfmu.__version__,
+            "platform": platform.platform()}
+    try:
+        import numba
+
+        info["numba"] = numba.__version__
+    except ImportError:
+        info["numba"] = None
+    return info
+
+
+def run_bench(size="full", model=None, say=None) -> dict:
+    """Run every measurement; returns the figures (see the module docstring)."""
+    from .model import DEFAULT_MODEL, load_model
+
+    say = say or (lambda msg: None)
+    cfg = SIZES[size]
+    model_path = Path(model) if model else DEFAULT_MODEL
+    m = load_model(model_path)
+    out = {"size": size, "machine": _machine(), "step_s": H}
+    with tempfile.TemporaryDirectory(prefix="piezo-fmu-bench-") as tmp:
+        say("building the FMUs and the pass-through floor FMU")
+        fmus = load_builder().build_all(model_path, tmp, floor=True, ssp=False, log=lambda *a, **k: None)
+        say(f"FMI floor: 3 pass-through instances, {cfg['steps']} steps x {cfg['reps']}")
+        out["floor_us_per_step"] = _floor_us(fmus["PassThrough"], cfg["steps"], cfg["reps"])
+        say(f"co-simulation: 3 FMUs, {cfg['steps']} steps x {cfg['reps']}")
+        system = {n: fmus[n] for n in ("Actuator", "Sensor", "Compensator")}
+        out["cosim_us_per_step"] = _cosim_us(system, cfg["steps"], cfg["reps"])
+        out["cosim_to_floor"] = out["cosim_us_per_step"] / out["floor_us_per_step"]
+        out["cosim_realtime_factor"] = H / (out["cosim_us_per_step"] * 1e-6)
+        from .simulate import numba_available
+
+        say("monolithic model at 1e-5 s")
+        engine = "numba" if numba_available() else "python"
+        out["monolithic_engine"] = engine
+        out["monolithic_samples_per_s"] = _monolithic(m, cfg["mono_s"], engine, cfg["reps"])
+        out["monolithic_python_samples_per_s"] = _monolithic(m, cfg["mono_py_s"], "python", cfg["reps"])
+        cosim_wall_per_s = out["cosim_us_per_step"] * 1e-6 / H
+        mono_wall_per_s = 1.0 / (out["monolithic_samples_per_s"] * 1e-5)
+        out["monolithic_speedup_vs_cosim"] = cosim_wall_per_s / mono_wall_per_s
+        out["monolithic_python_speedup_vs_cosim"] = cosim_wall_per_s / (
+            1.0 / (out["monolithic_python_samples_per_s"] * 1e-5))
+        say("PI operator throughput")
+        out.update(_pi_figures(m, cfg["pi_n"], cfg["reps"]))
+        seconds, fs = cfg["diag"]
+        say(f"diagnose on a {seconds:g} s, {fs:g} Hz, two-channel recording")
+        out["diagnose_s"] = _diagnose_s(model_path, seconds, fs, tmp)
+        out["diagnose_recording"] = {"seconds": seconds, "rate_hz": fs, "channels": ["x", "us"]}
+    out["targets"] = {"cosim_to_floor": "<= 1.5", "cosim_realtime_factor": ">= 3",
+                      "monolithic_samples_per_s": ">= 1e6", "monolithic_speedup_vs_cosim": ">= 100",
+                      "diagnose_s": "< 60 (20 s at 10 kHz)"}
+    return out
+
+
+def format_figures(r) -> str:
+    rows = [("FMI floor (3 pass-through FMUs)", f"{r['floor_us_per_step']:.1f} us/step"),
+            ("co-simulation (3 FMUs, H = 1e-4 s)", f"{r['cosim_us_per_step']:.1f} us/step"),
+            ("co-simulation / floor", f"{r['cosim_to_floor']:.2f} (target <= 1.5)"),
+            ("co-simulation real-time factor", f"{r['cosim_realtime_factor']:.2f} (target >= 3)"),
+            (f"monolithic, 1e-5 s ({r['monolithic_engine']})",
+             f"{r['monolithic_samples_per_s']:.3g} samples/s (target >= 1e6)"),
+            ("monolithic, 1e-5 s (interpreted)", f"{r['monolithic_python_samples_per_s']:.3g} samples/s"),
+            ("monolithic speed-up vs co-simulation", f"x{r['monolithic_speedup_vs_cosim']:.0f} (target >= 100)"),
+            ("PI step, forward / inverse", f"{r.get('pi_forward_ns_per_sample_operator', math.nan):.2f} / "
+                                           f"{r.get('pi_inverse_ns_per_sample_operator', math.nan):.2f} "
+                                           "ns per sample and operator (compiled)"),
+            ("PI step, interpreted", f"{r['pi_forward_interpreted_ns_per_sample_operator']:.0f} ns"),
+            ("PI scan, vectorised", f"{r['pi_forward_scan_ns_per_sample_operator']:.1f} ns"),
+            ("diagnose", f"{r['diagnose_s']:.1f} s for {r['diagnose_recording']['seconds']:g} s at "
+                         f"{r['diagnose_recording']['rate_hz']:g} Hz, 2 channels (target < 60 s)")]
+    width = max(len(a) for a, _ in rows)
+    return "\n".join(f"{a:<{width}}  {b}" for a, b in rows)
+
+
+def _cmd(args):
+    import sys
+
+    from .io import check_writable, write_text
+
+    if args.json:
+        check_writable(args.json, args.force)
+
+    def say(msg):
+        if not args.quiet:
+            print(msg, file=sys.stderr, flush=True)
+
+    result = run_bench(args.size, args.model, say)
+    print(format_figures(result))
+    if args.json:
+        write_text(args.json, json.dumps(result, indent=2), force=args.force)
+        say(f"wrote {args.json}")
+    return 0
+
+
+def register(subparsers):
+    p = subparsers.add_parser(
+        "bench", help="measure co-simulation, monolithic, PI and diagnose speed",
+        description="Measure, in one run: the FMI floor (3 pass-through FMUs), the co-simulation of "
+                    "the three FMUs at H = 1e-4 s, the monolithic model at 1e-5 s, PI operator "
+                    "throughput and diagnose on a 20 s, 10 kHz recording. Figures, not pass/fail.")
+    p.add_argument("--json", metavar="FILE", help="write the figures as JSON")
+    p.add_argument("--size", choices=tuple(SIZES), default="full",
+                   help="full (default, about a minute) or tiny (seconds; for tests)")
+    p.add_argument("--model", metavar="FILE.toml", default=None)
+    p.add_argument("--force", action="store_true", help="overwrite --json")
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=_cmd)

@@ -1,0 +1,25 @@
+"""The benchmark keeps working (issue 5): tiny size, keys and sane values; speeds are not asserted."""
+import json
+import math
+
+from piezo_fmu.bench import KEYS
+from piezo_fmu.cli import main
+
+
+def test_bench_tiny_writes_every_key(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    assert main(["bench", "--size", "tiny", "--json", str(out), "--quiet"]) == 0
+    r = json.loads(out.read_text())
+    for key in KEYS:
+        assert isinstance(r[key], (int, float)) and math.isfinite(r[key]) and r[key] > 0, key
+    # the figures are consistent with each other
+    assert math.isclose(r["cosim_to_floor"], r["cosim_us_per_step"] / r["floor_us_per_step"])
+    assert math.isclose(r["cosim_realtime_factor"], 1e-4 / (r["cosim_us_per_step"] * 1e-6))
+    # the co-simulation does more than the pass-through floor, and the physics is not free
+    assert r["cosim_us_per_step"] > r["floor_us_per_step"]
+    assert r["pi_forward_interpreted_ns_per_sample_operator"] > 0
+    assert r["machine"]["cores"] >= 1
+    printed = capsys.readouterr().out
+    assert "us/step" in printed and "samples/s" in printed
+    # refusing to overwrite
+    assert main(["bench", "--size", "tiny", "--json", str(out), "--quiet"]) == 2
