@@ -376,6 +376,9 @@ def build_parser():
                                    "closed loop as a co-simulation and compare it with the monolithic "
                                    "model.")
     s.add_argument("--out", default="demo-out", metavar="DIR", help="output folder (default: demo-out)")
+    s.add_argument("--fmu-dir", metavar="DIR", default=None,
+                   help="where to build the FMUs and the SSP (default: models/, where every command "
+                        "looks for them)")
     s.add_argument("--force", action="store_true")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=cmd_demo)
