@@ -23,7 +23,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from .core import control, hysteresis, plant
+from .core import control, hysteresis, linear, plant
 from .core.control import compensator_step
 from .core.plant import actuator_step, sensor_step
 from .errors import UserError
@@ -156,7 +156,7 @@ def closed_loop(n, h, t0, k0, rec_every, xref, use_ext, noise,
 # -- the compiled engine ------------------------------------------------------------------------
 
 _KERNEL_ORDER = (
-    (hysteresis, "pi_step"), (plant, "amp_step"), (plant, "lti_advance"),
+    (hysteresis, "pi_step"), (plant, "amp_step"), (linear, "lti_advance"),
     (control, "reference_value"), (control, "pid_step"),
     (plant, "actuator_step"), (plant, "sensor_step"), (control, "compensator_step"),
 )

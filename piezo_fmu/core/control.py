@@ -28,8 +28,7 @@ from __future__ import annotations
 import math
 
 from .hysteresis import PrandtlIshlinskii, pi_step
-from .linear import same_step
-from .plant import LTIData, lti_advance
+from .linear import LinearSystem, lti_advance, same_step
 
 __all__ = ["MODES", "INVERSES", "SIGNALS", "reference_value", "pid_step", "compensator_step",
            "Compensator", "inverse_filter_tf"]
@@ -193,7 +192,7 @@ class Compensator:
         self.inv_k = [1.0 / inv.in_scale, inv.out_scale]
         self.g_num, self.g_den = list(g_num), list(g_den)
         self.filter_hz = float(filter_hz)
-        self.ginv = LTIData(*inverse_filter_tf(self.g_num, self.g_den, self.filter_hz))
+        self.ginv = LinearSystem(*inverse_filter_tf(self.g_num, self.g_den, self.filter_hz))
         self.cfg = [float(MODES[mode]), float(INVERSES[inverse]), float(k_ideal), float(k_amp),
                     float(sensor_gain), float(sensor_offset), float(uc_min), float(uc_max), 0.0]
         self.ref = [float(SIGNALS[signal]), float(amplitude), float(offset), float(freq),

@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-__all__ = ["expm", "tf2ss", "discretize", "is_hurwitz", "LinearSystem", "lti_step", "same_step"]
+__all__ = ["expm", "tf2ss", "discretize", "is_hurwitz", "LinearSystem", "lti_advance", "same_step"]
 
 STEP_RTOL = 1e-9
 
@@ -108,103 +108,126 @@ def discretize(a, b, h, method="foh"):
     raise ValueError(f"unknown discretisation method {method!r}")
 
 
-def lti_step(phi, g0, g1, x, u0, u1, tmp):
-    """Advance a single-input discrete system one step in place (no allocation).
+def lti_advance(phi, g, cd, xs, u, tmp):
+    """Advance an LTI block whose input moves linearly from its previous value to ``u``.
 
-    ``phi`` is ``n x n`` (nested lists or a 2-D array), ``g0``/``g1`` length ``n``; ``tmp`` is a
-    scratch buffer of length ``n``.
+    Flat, row-major data (no row views: cheap in CPython, no reference counting in numba):
+    ``phi``: n*n; ``g``: 2n (G0 then G1); ``cd``: n + 1 (C then D); ``xs``: n + 1 (state then
+    previous input), updated in place; ``tmp``: scratch of length n. Returns ``C x + D u``.
+    Orders 0-2 (gains, first-order filters, the mechanics) have unrolled paths with the generic
+    summation order.
     """
-    n = len(x)
+    n = len(tmp)
+    u0 = xs[n]
+    if n == 0:
+        xs[0] = u
+        return cd[0] * u
+    if n == 1:
+        a = g[0] * u0 + g[1] * u + phi[0] * xs[0]
+        xs[0] = a
+        xs[1] = u
+        return cd[1] * u + cd[0] * a
+    if n == 2:
+        x0 = xs[0]
+        x1 = xs[1]
+        a = g[0] * u0 + g[2] * u + phi[0] * x0 + phi[1] * x1
+        b = g[1] * u0 + g[3] * u + phi[2] * x0 + phi[3] * x1
+        xs[0] = a
+        xs[1] = b
+        xs[2] = u
+        return cd[2] * u + cd[0] * a + cd[1] * b
     for i in range(n):
-        acc = g0[i] * u0 + g1[i] * u1
-        row = phi[i]
+        acc = g[i] * u0 + g[n + i] * u
+        base = i * n
         for j in range(n):
-            acc += row[j] * x[j]
+            acc += phi[base + j] * xs[j]
         tmp[i] = acc
+    y = cd[n] * u
     for i in range(n):
-        x[i] = tmp[i]
+        xs[i] = tmp[i]
+        y += cd[i] * tmp[i]
+    xs[n] = u
+    return y
 
 
 class LinearSystem:
-    """A stateful single-input single-output LTI block stepped at a (cached) step size.
+    """A stateful single-input single-output LTI block with explicit, flat state.
 
     Parameters
     ----------
     num, den : sequence of float
         Transfer function coefficients, descending powers of ``s`` (proper).
     method : {"foh", "zoh"}
-        How the input is interpolated within a step.
+        How the input moves within a step: linearly from the previous value (``"foh"``) or held
+        at the new value (``"zoh"``).
 
-    ``step(u, h)`` advances ``h`` seconds and returns the output at the end of the step: with
-    ``"foh"`` the input moves linearly from the previous value to ``u``, with ``"zoh"`` ``u`` is
-    held over the step. The state (``x`` and the previous input) is explicit.
+    ``step(u, h)`` advances ``h`` seconds and returns the output at the end of the step. The
+    discrete data (``phi`` n*n row-major, ``g`` = G0 then G1, ``cd`` = C then D) and the state
+    (``xs`` = x then the previous input; ``tmp`` scratch) are plain lists, used directly by the
+    :func:`lti_advance` kernel (also compiled by numba for the monolithic model).
     """
 
-    __slots__ = ("num", "den", "method", "_a", "_b", "_c", "_d", "_x", "_tmp", "_u", "_h",
-                 "_phi", "_g0", "_g1", "_cl", "_dd")
+    __slots__ = ("num", "den", "method", "a", "b", "phi", "g", "cd", "xs", "tmp", "h")
 
     def __init__(self, num, den, method="foh"):
-        self.num = tuple(float(v) for v in np.atleast_1d(num))
-        self.den = tuple(float(v) for v in np.atleast_1d(den))
+        if method not in ("foh", "zoh"):
+            raise ValueError(f"unknown discretisation method {method!r}")
+        self.num = [float(v) for v in np.atleast_1d(num)]
+        self.den = [float(v) for v in np.atleast_1d(den)]
         self.method = method
         a, b, c, d = tf2ss(self.num, self.den)
-        self._a, self._b = a, b
-        self._cl = [float(v) for v in c.ravel()]
-        self._dd = float(d[0, 0])
+        self.a, self.b = a, b
         n = a.shape[0]
-        self._x = [0.0] * n
-        self._tmp = [0.0] * n
-        self._u = 0.0
-        self._h = None
+        self.cd = [float(v) for v in c.ravel()] + [float(d[0, 0])]
+        self.xs = [0.0] * (n + 1)
+        self.tmp = [0.0] * n
+        self.phi = [0.0] * (n * n)
+        self.g = [0.0] * (2 * n)
+        self.h = None
 
     @property
-    def order(self) -> int:
-        return len(self._x)
+    def order(self):
+        return len(self.tmp)
 
-    def dc_gain(self) -> float:
+    def dc_gain(self):
         return self.num[-1] / self.den[-1] if self.den[-1] != 0 else math.inf
 
     def prepare(self, h):
-        """Compute (and cache) the discrete matrices for step ``h``."""
-        if not same_step(h, self._h):
-            phi, g0, g1 = discretize(self._a, self._b, h, self.method)
-            self._phi = [[float(v) for v in row] for row in phi]
-            self._g0 = [float(v) for v in g0.ravel()]
-            self._g1 = [float(v) for v in g1.ravel()]
-            self._h = h
-
-    def reset(self, u=0.0):
-        """Put the block at rest in the steady state for a constant input ``u``."""
-        n = len(self._x)
+        """Compute (and cache, see :func:`same_step`) the discrete data for step ``h`` [s]."""
+        if same_step(h, self.h):
+            return
+        n = self.order
         if n:
-            xs = np.linalg.solve(self._a, -self._b[:, 0] * u) if u else np.zeros(n)
-            self._x[:] = [float(v) for v in xs]
-        self._u = float(u)
+            phi, g0, g1 = discretize(self.a, self.b, h, self.method)
+            self.phi[:] = [float(v) for v in phi.ravel()]
+            self.g[:] = [float(v) for v in g0.ravel()] + [float(v) for v in g1.ravel()]
+        self.h = h
+
+    def settle(self, u):
+        """Set the state to the steady state for a constant input ``u``."""
+        n = self.order
+        if n:
+            xs = np.linalg.solve(self.a, -self.b[:, 0] * u)
+            self.xs[:n] = [float(v) for v in xs]
+        self.xs[n] = float(u)
+
+    reset = settle
 
     def step(self, u, h):
-        if h != self._h:
+        if h != self.h:
             self.prepare(h)
-        u0 = u if self.method == "zoh" else self._u
-        lti_step(self._phi, self._g0, self._g1, self._x, u0, u, self._tmp)
-        self._u = u
-        y = self._dd * u
-        c = self._cl
-        x = self._x
-        for i in range(len(x)):
-            y += c[i] * x[i]
-        return y
+        if self.method == "zoh":
+            self.xs[self.order] = u        # G1 = 0: the input held over the step is the new one
+        return lti_advance(self.phi, self.g, self.cd, self.xs, u, self.tmp)
 
     def output(self):
-        y = self._dd * self._u
-        for ci, xi in zip(self._cl, self._x):
-            y += ci * xi
-        return y
+        n = self.order
+        return sum(self.cd[i] * self.xs[i] for i in range(n)) + self.cd[n] * self.xs[n]
 
     def get_state(self):
-        return [*self._x, self._u]
+        return list(self.xs)
 
     def set_state(self, s):
-        if len(s) != len(self._x) + 1:
-            raise ValueError(f"linear block state needs {len(self._x) + 1} values, got {len(s)}")
-        self._x[:] = [float(v) for v in s[:-1]]
-        self._u = float(s[-1])
+        if len(s) != len(self.xs):
+            raise ValueError(f"linear block state needs {len(self.xs)} values, got {len(s)}")
+        self.xs[:] = [float(v) for v in s]

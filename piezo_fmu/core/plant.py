@@ -29,11 +29,11 @@ import math
 import numpy as np
 
 from .hysteresis import PrandtlIshlinskii, pi_step
-from .linear import discretize, same_step, tf2ss
+from .linear import LinearSystem, lti_advance, same_step
 
 EPS0 = 8.8541878128e-12  # vacuum permittivity [F/m]
 
-__all__ = ["amp_step", "lti_advance", "actuator_step", "LTIData", "Actuator", "Sensor",
+__all__ = ["amp_step", "actuator_step", "Actuator", "Sensor",
            "sensor_step", "EPS0"]
 
 
@@ -51,100 +51,6 @@ def amp_step(ua, target, tau, slew, h, decay):
             return ua + sgn * slew * h
         return target - sgn * slew * tau * math.exp(-(h - t_ramp) / tau)
     return target - e * decay
-
-
-def lti_advance(phi, g, cd, xs, u, tmp):
-    """Advance an LTI block whose input moves linearly from its previous value to ``u``.
-
-    Flat, row-major data (no row views: cheap in CPython, no reference counting in numba):
-    ``phi``: n*n; ``g``: 2n (G0 then G1); ``cd``: n + 1 (C then D); ``xs``: n + 1 (state then
-    previous input), updated in place; ``tmp``: scratch of length n. Returns ``C x + D u``.
-    Orders 0-2 (gains, first-order filters, the mechanics) have unrolled paths with the generic
-    summation order.
-    """
-    n = len(tmp)
-    u0 = xs[n]
-    if n == 0:
-        xs[0] = u
-        return cd[0] * u
-    if n == 1:
-        a = g[0] * u0 + g[1] * u + phi[0] * xs[0]
-        xs[0] = a
-        xs[1] = u
-        return cd[1] * u + cd[0] * a
-    if n == 2:
-        x0 = xs[0]
-        x1 = xs[1]
-        a = g[0] * u0 + g[2] * u + phi[0] * x0 + phi[1] * x1
-        b = g[1] * u0 + g[3] * u + phi[2] * x0 + phi[3] * x1
-        xs[0] = a
-        xs[1] = b
-        xs[2] = u
-        return cd[2] * u + cd[0] * a + cd[1] * b
-    for i in range(n):
-        acc = g[i] * u0 + g[n + i] * u
-        base = i * n
-        for j in range(n):
-            acc += phi[base + j] * xs[j]
-        tmp[i] = acc
-    y = cd[n] * u
-    for i in range(n):
-        xs[i] = tmp[i]
-        y += cd[i] * tmp[i]
-    xs[n] = u
-    return y
-
-
-class LTIData:
-    """Discrete data of a SISO transfer function for :func:`lti_advance`, with state.
-
-    ``num``/``den`` in descending powers of ``s``. ``prepare(h)`` (re)discretises (FOH) into the
-    flat lists ``phi`` (n*n, row-major) and ``g`` (G0 then G1).
-    """
-
-    __slots__ = ("num", "den", "a", "b", "phi", "g", "cd", "xs", "tmp", "h")
-
-    def __init__(self, num, den):
-        self.num = [float(v) for v in np.atleast_1d(num)]
-        self.den = [float(v) for v in np.atleast_1d(den)]
-        a, b, c, d = tf2ss(self.num, self.den)
-        self.a, self.b = a, b
-        n = a.shape[0]
-        self.cd = [float(v) for v in c.ravel()] + [float(d[0, 0])]
-        self.xs = [0.0] * (n + 1)
-        self.tmp = [0.0] * n
-        self.phi = [0.0] * (n * n)
-        self.g = [0.0] * (2 * n)
-        self.h = None
-
-    @property
-    def order(self):
-        return len(self.tmp)
-
-    def prepare(self, h):
-        if same_step(h, self.h):
-            return
-        n = self.order
-        if n:
-            phi, g0, g1 = discretize(self.a, self.b, h, "foh")
-            self.phi[:] = [float(v) for v in phi.ravel()]
-            self.g[:] = [float(v) for v in g0.ravel()] + [float(v) for v in g1.ravel()]
-        self.h = h
-
-    def settle(self, u):
-        """Set the state to the steady state for a constant input ``u``."""
-        n = self.order
-        if n:
-            xs = np.linalg.solve(self.a, -self.b[:, 0] * u)
-            self.xs[:n] = [float(v) for v in xs]
-        self.xs[n] = float(u)
-
-    def output(self):
-        n = self.order
-        return sum(self.cd[i] * self.xs[i] for i in range(n)) + self.cd[n] * self.xs[n]
-
-    def dc_gain(self):
-        return self.num[-1] / self.den[-1]
 
 
 def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
@@ -233,9 +139,9 @@ class Actuator:
         self.pi_w = list(hysteresis.weights)
         self.pi_z = [0.0] * hysteresis.n
         self.pi_k = [1.0 / hysteresis.in_scale, hysteresis.out_scale, 1.0 / self.saturation]
-        self.creep = LTIData(*creep_tf(self.creep_gains, self.creep_taus))
+        self.creep = LinearSystem(*creep_tf(self.creep_gains, self.creep_taus))
         self.k_force = self.k_a * 1e-6
-        self.mech = LTIData(*mechanics_tf(self.m, self.c, self.k_a, self.k_f, self.resonance))
+        self.mech = LinearSystem(*mechanics_tf(self.m, self.c, self.k_a, self.k_f, self.resonance))
         self.out = [0.0, 0.0, 0.0, 0.0]
         self._h = None
         self._adv_step = None
