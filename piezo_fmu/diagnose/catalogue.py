@@ -1,0 +1,432 @@
+"""The catalogue of candidate mechanisms: model, residual signature, parameters, and how to search.
+
+Every mechanism is physics the core already runs (so the FMUs run it too), switched on by
+parameters of the model file. For each one this module knows
+
+* where it lives in the model file (``keys``) and which channels it touches;
+* its residual signature (what the recalibrated nominal model leaves behind without it);
+* :func:`propose` - a coarse screening from which the full fit starts (weights held, the
+  candidate's parameters on a grid, the best grid point kept);
+* :func:`plausible` - physical checks on the fitted values (a mode must be lightly damped and
+  below Nyquist, a current limit must actually bind somewhere, ...).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .engine import amplifier_output, chain, lowpass, predict
+from .fit import Fitter, Structure
+from .stats import psd
+
+__all__ = ["CATALOGUE", "Mechanism", "describe_parameters", "plausible", "propose"]
+
+
+@dataclass(frozen=True)
+class Mechanism:
+    name: str
+    title: str
+    model: str
+    signature: str
+    parameters: str
+    keys: tuple
+    channels: tuple          # channels the mechanism changes
+
+
+CATALOGUE = {m.name: m for m in (
+    Mechanism(
+        "creep", "Creep (slow viscoelastic drift after input changes)",
+        "x_free = (1 + sum_j g_j / (tau_j s + 1)) x_h: Kelvin elements after the hysteresis",
+        "after every step the output keeps moving in the step's direction for tau_j; in both "
+        "channels (the sensor measures the creeping force); residual below about 1/(2 pi tau) Hz, "
+        "largest in holds after steps, coherent with the input history",
+        "gains g_j [1] (relative to the hysteretic stroke), time_constants tau_j [s]",
+        ("creep.gains", "creep.time_constants"), ("x", "us")),
+    Mechanism(
+        "sensor_leakage", "Charge leakage of the quartz sensor",
+        "tau dw/dt = -(w + S_q F), us = S_q F + w: a first-order high-pass tau s / (tau s + 1) on the force",
+        "the sensor voltage decays towards its offset during holds while the displacement does "
+        "not; only in us; residual at frequencies below 1/(2 pi tau)",
+        "tau_leak [s]", ("sensor.tau_leak",), ("us",)),
+    Mechanism(
+        "amplifier_current_limit", "Amplifier current limit (slew-rate limit)",
+        "|C_a dua/dt| <= I_max: the stack voltage ramps at I_max / C_a instead of following the lag",
+        "distortion where amplitude x frequency is high and after large steps (linear ramps instead "
+        "of exponentials); grows with the command rate; odd harmonics in fast sines",
+        "I_max [A] (slew rate I_max / C_a [V/s])", ("amplifier.I_max",), ("x", "us")),
+    Mechanism(
+        "time_delay", "Transport or sampling latency",
+        "uc(t) -> uc(t - T) before the amplifier",
+        "phase lag growing linearly with frequency, no change of magnitude: residual in quadrature "
+        "with the fast parts of the input, largest at the highest frequencies and right after steps",
+        "delay T [s]", ("amplifier.delay",), ("x", "us")),
+    Mechanism(
+        "extra_resonance", "A further lightly damped mechanical mode",
+        "x -> wn^2 / (s^2 + 2 zeta wn s + wn^2) x (unity DC gain, in series with the mechanics)",
+        "ringing at f_n after steps and a peak of the residual spectrum at f_n, coherent with the "
+        "input; in the displacement only (the sensor measures the stack force before the mode)",
+        "f_n [Hz], zeta [1]", ("resonance.f_n", "resonance.zeta"), ("x",)),
+    Mechanism(
+        "thermal_drift", "Slow offset drift (thermal)",
+        "x += rate t + curvature t^2 (time since the start of the recording)",
+        "a slow trend of the displacement that the input history does not explain: not tied to "
+        "steps, same in holds and in motion, the lowest frequencies of the residual spectrum",
+        "rate [um/s], curvature [um/s^2]", ("drift.rate", "drift.curvature"), ("x",)),
+    Mechanism(
+        "hysteresis_shape", "A loop shape the nominal play-operator grid cannot draw",
+        "the same Prandtl-Ishlinskii model with twice the operators (midpoints added to the "
+        "nominal thresholds): finer, rate-independent loop shape",
+        "at harmonics of a periodic command, locked to its phase; depends on amplitude and reversal "
+        "history, not on rate; present in both channels",
+        "thresholds and weights of the finer grid", ("hysteresis.thresholds", "hysteresis.weights"),
+        ("x", "us")),
+)}
+
+
+def _log_grid(lo, hi, n):
+    return list(np.exp(np.linspace(math.log(lo), math.log(hi), n)))
+
+
+def propose(name, fitter: Fitter, p, struct: Structure, ctx):
+    """Screen candidate ``name`` on a coarse grid (weights held); return the best start or ``None``."""
+    dt, T = fitter.dt, fitter.duration
+    chans = ctx["channels"]
+    if name == "creep":
+        if struct.creep_order >= 2:
+            return None
+        # one element more than now: every element re-screened (taus on a grid, gains solved)
+        taus = _log_grid(max(0.02, 20 * dt), 2.0 * T, 11)
+        order = struct.creep_order + 1
+        sets = [(t,) for t in taus] if order == 1 else \
+            [(a, b) for i, a in enumerate(taus) for b in taus[i + 1:] if b / a >= 2.5]
+        best, best_c = None, math.inf
+        for cost, gains, tset in _quick_creep_sets(fitter, p, sets):
+            if all(g > 0 for g in gains) and cost < best_c:
+                best_c, best = cost, list(zip(gains, tset))
+        if best is None:
+            return None
+        q = p.copy()
+        q.creep = best
+        return q
+    if name == "sensor_leakage":
+        if "us" not in chans or math.isfinite(p.tau_leak):
+            return None
+        grid = [{"tau_leak": tau} for tau in _log_grid(max(0.02, 20 * dt), 50 * T, 12)]
+        best, _ = fitter.grid(p, grid)
+        return best
+    if name == "amplifier_current_limit":
+        if math.isfinite(p.slew):
+            return None
+        rmax = max(float(np.max(np.abs(np.diff(amplifier_output(r, fitter.dev, p))))) / r.dt
+                   for r in fitter.recs)
+        grid = [{"slew": s} for s in _log_grid(0.02 * rmax, 0.9 * rmax, 12)]
+        best, _ = fitter.grid(p, grid)
+        return best
+    if name == "time_delay":
+        if p.delay > 0:
+            return None
+        # timing trades off against the loop's width: every point re-solves the weights
+        nd_max = max(1, min(64, int(round(0.02 / dt))))
+        nds = sorted({int(round(v)) for v in np.exp(np.linspace(0, math.log(nd_max), 9))})
+        best, best_c = None, math.inf
+        for nd in nds:
+            # the total lag is roughly conserved: start the lag search from what is left of it
+            q, c = _lag_profile(fitter, p, struct, nd * dt, max(p.tau - nd * dt, p.tau / 20))
+            if c < best_c:
+                best, best_c = q, c
+            elif best is not None and c > 3 * best_c:
+                break                       # far past the best delay
+        nd0 = int(round(best.delay / dt))
+        for nd in (nd0 - 1, nd0 + 1):
+            if nd < 1 or nd in nds:
+                continue
+            q, c = _lag_profile(fitter, p, struct, nd * dt, best.tau)
+            if c < best_c:
+                best, best_c = q, c
+        return best
+    if name == "extra_resonance":
+        if "x" not in chans or p.res is not None:
+            return None
+        fmax = 0.45 / dt
+        fs = _log_grid(10.0, fmax, 12)
+        for pk in ctx.get("x_peaks", []):
+            if 5.0 < pk < fmax:
+                fs += [pk * 0.97, pk, pk * 1.03]
+        # the mode adds phase lag below f_n that the amplifier lag had absorbed: the best grid
+        # points get their lag re-searched
+        scored = sorted((fitter.quick(_with(p, res=(f, z))), f, z) for f in fs for z in (0.015, 0.06))
+        best, best_c = None, math.inf
+        for _, f, z in scored[:3]:
+            q, c = fitter.fit_scalar(_with(p, res=(f, z)), struct, "tau", quick=True,
+                                     bounds=(max(fitter.bounds("tau")[0], p.tau / 5), p.tau * 2), xatol=0.03)
+            if c < best_c:
+                best, best_c = q, c
+        return best
+    if name == "thermal_drift":
+        if "x" not in chans or "thermal_drift" in struct.effects:
+            return None
+        return p.copy()          # linear: screened by Fitter.quick(drift=True), fitted exactly
+    if name == "hysteresis_shape":
+        if "hysteresis_shape" in struct.effects:
+            return None
+        r = np.asarray(p.thresholds, float)
+        mids = 0.5 * (r[1:] + r[:-1])
+        q = p.copy()
+        q.thresholds = np.sort(np.concatenate([r, mids]))
+        q.weights = np.zeros(q.thresholds.size)
+        fitter.varpro(q, struct, gn_iter=2)          # the weights are linear: solve them exactly
+        return q
+    return None
+
+
+def _with(p, **kw):
+    q = p.copy()
+    for k, v in kw.items():
+        setattr(q, k, v)
+    return q
+
+
+def _lag_profile(fitter: Fitter, p, struct, delay, tau0):
+    """Best amplifier lag for a given delay, the weights re-solved at each point (variable
+    projection): three lags and a parabola in log tau. Returns the parameters and the cost."""
+    lo = fitter.bounds("tau")[0]
+
+    def at(x):
+        q = p.copy()
+        q.delay = delay
+        q.tau = math.exp(x)
+        r = fitter.varpro(q, struct)
+        return q, float(r @ r)
+
+    xs = [math.log(max(tau0 * f, lo)) for f in (0.5, 1.0, 2.0)]
+    pts = [at(x) for x in xs]
+    cs = [c for _, c in pts]
+    best = pts[int(np.argmin(cs))]
+    a = np.polyfit(xs, cs, 2)
+    if a[0] > 0:
+        x_star = min(max(-a[1] / (2 * a[0]), xs[0] - 0.7), xs[-1] + 0.7)
+        cand = at(x_star)
+        if cand[1] < best[1]:
+            best = cand
+    return best
+
+
+def _quick_creep_sets(fitter: Fitter, p, sets):
+    """Screening costs of creep with the time constants of each set in ``sets``, gains solved.
+
+    With the weights held, creep adds ``sum_j g_j LP_tau_j(x_h)`` to the free stroke, so each channel
+    is ``a * (prediction without creep) + sum_j c_j * (element j's contribution) + offset``: linear,
+    ``g_j = c_j / a`` (from the displacement when recorded: the sensor voltage mixes creep with any
+    leakage). Yields ``(cost, gains, set)``.
+    """
+    p0 = p.copy()
+    p0.creep = []
+    taus = sorted({t for s in sets for t in s})
+    per_ch = {}
+    for ch in ("x", "us"):
+        ys, base, cols = [], [], {t: [] for t in taus}
+        for r in fitter.recs:
+            y = getattr(r, ch)
+            if y is None:
+                continue
+            pr = predict(r, fitter.dev, p0, direct=True)
+            m = r.train
+            ys.append(y[m])
+            base.append(pr[ch][m])
+            for t in taus:
+                add = chain(lowpass(pr["x_h"], t, r.dt), ch, fitter.dev, p0, r.dt) * (1.0 if ch == "x" else p0.S)
+                cols[t].append(add[m])
+        if ys:
+            names = ["base", "one"] + taus
+            mat = np.vstack([np.concatenate(base), np.ones(sum(v.size for v in ys))]
+                            + [np.concatenate(cols[t]) for t in taus])
+            y = np.concatenate(ys)
+            per_ch[ch] = (names, mat @ mat.T, mat @ y, float(y @ y))
+    for tset in sets:
+        cost, gains = 0.0, {}
+        for ch, (names, G, gy, yy) in per_ch.items():
+            idx = [0, 1] + [names.index(t) for t in tset]
+            g = G[np.ix_(idx, idx)]
+            r = gy[idx]
+            try:
+                c = np.linalg.solve(g, r)
+            except np.linalg.LinAlgError:
+                c = np.linalg.lstsq(g, r, rcond=None)[0]
+            cost += fitter.lam[ch] * max(yy - float(c @ r), 0.0)
+            if c[0] > 0:
+                gains[ch] = [float(v / c[0]) for v in c[2:]]
+        gs = gains.get("x", gains.get("us"))
+        if gs is not None:
+            yield cost, gs, tset
+
+
+def _offset_trend_alternative(fitter: Fitter, p):
+    """Structured sensor residual (rms above the noise floor, training rows) of the leakage model
+    ``p`` and of the same model with the leakage replaced by a quadratic drift of the offset."""
+    q = p.copy()
+    q.tau_leak = math.inf
+    e_own, e_alt, ts = [], [], []
+    for r in fitter.recs:
+        if r.us is None:
+            continue
+        m = r.train
+        e_own.append((r.us - predict(r, fitter.dev, p, direct=True)["us"])[m])
+        e_alt.append((r.us - predict(r, fitter.dev, q, direct=True)["us"])[m])
+        ts.append(r.t[m])
+    e1, e0, t = np.concatenate(e_own), np.concatenate(e_alt), np.concatenate(ts)
+    t = t / max(float(np.max(t)), 1e-12)
+    a = np.vstack([np.ones_like(t), t, t * t]).T
+    coef, *_ = np.linalg.lstsq(a, e0, rcond=None)
+    eq = e0 - a @ coef
+    s2 = fitter.noise.get("us", 0.0) ** 2
+
+    def structured(e):
+        return math.sqrt(max(float(np.mean(e * e)) - s2, 0.0))
+
+    return structured(eq), structured(e1)
+
+
+def _own_channel_share(fitter: Fitter, p0, p1, ch):
+    """Share of channel ``ch``'s structured residual that ``p1`` removes over ``p0`` when both are
+    re-solved on that channel alone (the other channel weighted out). A mechanism acting on one
+    channel must pass this: otherwise its gain came from the other channel via shared parameters.
+    ``None`` when only ``ch`` is recorded (then the joint fit already is the own-channel fit)."""
+    from .engine import solve_linear
+
+    if not all(getattr(r, c) is not None for r in fitter.recs for c in ("x", "us")):
+        return None
+    lam = {c: (v if c == ch else v * 1e-9) for c, v in fitter.lam.items()}
+    mse = []
+    for p in (p0, p1):
+        q = p.copy()
+        solve_linear(fitter.recs, fitter.dev, q, lam, drift_terms=2 if (p.rate or p.curv) else 0,
+                     replays=fitter.replays(q), gn_iter=2)
+        e = np.concatenate([(getattr(r, ch) - predict(r, fitter.dev, q, direct=True)[ch])[r.train]
+                            for r in fitter.recs])
+        mse.append(float(np.mean(e * e)))
+    structured = mse[0] - fitter.noise.get(ch, 0.0) ** 2
+    if structured <= 0:
+        return 0.0
+    return (mse[0] - mse[1]) / structured
+
+
+def _drift_in_sensor(fitter: Fitter, p):
+    """How much of the fitted displacement drift also shows in the sensor residual, relative to a
+    trend of the force itself (1: all of it, 0: none); ``None`` without a sensor channel."""
+    us_per_x = p.S * fitter.dev.k_force / fitter.dev.mech_gain
+    es, ds = [], []
+    for r in fitter.recs:
+        if r.us is None or r.x is None:
+            continue
+        m = r.train
+        pr = predict(r, fitter.dev, p, direct=True)
+        es.append((r.us - pr["us"])[m])
+        t = r.t[m]
+        ds.append(us_per_x * (p.rate * t + p.curv * t * t))
+    if not es:
+        return None
+    e, d = np.concatenate(es), np.concatenate(ds)
+    d = d - np.mean(d)
+    dd = float(d @ d)
+    if dd <= 0:
+        return None
+    return float((e - np.mean(e)) @ d / dd)
+
+
+def spectral_peaks(e, fs, n=3):
+    """Frequencies of the largest local maxima of the residual spectrum above 5 Hz."""
+    f, pw = psd(e, fs)
+    ok = f > 5.0
+    f, pw = f[ok], pw[ok]
+    if f.size < 3:
+        return []
+    loc = np.nonzero((pw[1:-1] > pw[:-2]) & (pw[1:-1] > pw[2:]))[0] + 1
+    loc = loc[np.argsort(-pw[loc])][:n]
+    return [float(f[k]) for k in loc]
+
+
+def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
+    """``(ok, reason)``: physical checks of a fitted candidate and of where it helped."""
+    dt, T = fitter.dt, fitter.duration
+    ch = cmp["channels"]
+    if name == "creep":
+        g, tau = p_after.creep[-1]
+        if g < 0.003:
+            return False, f"creep gain {g:.3g} is negligible"
+        if "x" in ch and "us" in ch and ch["us"]["explained"] > 0.3 and ch["x"]["explained"] < 0.05 \
+                and ch["x"]["structured_before"] > 2 * ch["x"]["noise"]:
+            return False, "helps the sensor voltage only, which creep cannot do (creep moves both)"
+        if tau > 4.5 * T:
+            return True, f"time constant {tau:.3g} s is longer than the recording: creep or drift"
+        return True, ""
+    if name == "sensor_leakage":
+        if p_after.tau_leak > 100 * T:
+            return False, "leakage time constant far beyond the recording: no visible decay"
+        alt, own = _offset_trend_alternative(fitter, p_after)
+        noise = ch["us"]["noise"]
+        if alt <= own + 0.5 * noise:
+            return False, (f"a slow drift of the sensor offset (quadratic in time; not in the catalogue) "
+                           f"explains the sensor voltage as well (structured residual {alt:.3g} against "
+                           f"{own:.3g} V): the level-dependent decays that would single out leakage are not "
+                           "in the data")
+        return True, ""
+    if name == "amplifier_current_limit":
+        slew = p_after.slew
+        limited = 0
+        for r in fitter.recs:
+            ua = amplifier_output(r, fitter.dev, p_after)
+            limited += int(np.count_nonzero(np.abs(np.diff(ua)) >= 0.999 * slew * r.dt))
+        if limited < 3:
+            return False, "the fitted current limit never binds"
+        return True, f"binds on {limited} samples"
+    if name == "time_delay":
+        if p_after.delay < 0.5 * dt:
+            return False, "delay below one sample"
+        return True, ""
+    if name == "extra_resonance":
+        f, z = p_after.res
+        if z > 0.15:
+            return False, f"damping ratio {z:.2f}: not a lightly damped mode (it only adds phase lag)"
+        if f > 0.45 / dt:
+            return False, "above the Nyquist frequency"
+        return True, ""
+    if name == "thermal_drift":
+        tt = np.linspace(0.0, T, 200)
+        drift = float(np.ptp(p_after.rate * tt + p_after.curv * tt * tt))
+        if "x" in ch and drift < 0.5 * ch["x"]["noise"]:
+            return False, "drift over the recording below the noise"
+        share = _drift_in_sensor(fitter, p_after)
+        if share is not None and share > 0.3:
+            return False, (f"the same slow trend is in the sensor voltage ({100 * share:.0f} % of what a "
+                           "trend of the force would give): it moves the force, so it is not a drift of "
+                           "the displacement reading")
+        own = _own_channel_share(fitter, p_before, p_after, "x")
+        if own is not None and own < 0.15:
+            return False, (f"fitted to the displacement alone it explains {100 * max(own, 0):.0f} % of its "
+                           "structured residual: the trend came from the sensor channel through the shared "
+                           "parameters")
+        return True, ""
+    return True, ""
+
+
+def describe_parameters(name, p, dev, dt):
+    """The fitted parameters of a mechanism in model-file units."""
+    if name == "creep":
+        return {"gains": [float(f"{g:.5g}") for g, _ in p.creep],
+                "time_constants_s": [float(f"{t:.5g}") for _, t in p.creep]}
+    if name == "sensor_leakage":
+        return {"tau_leak_s": float(f"{p.tau_leak:.5g}")}
+    if name == "amplifier_current_limit":
+        return {"I_max_A": float(f"{p.slew * dev.C_a:.5g}"), "slew_V_per_s": float(f"{p.slew:.5g}")}
+    if name == "time_delay":
+        return {"delay_s": float(f"{round(p.delay / dt) * dt:.6g}"), "samples": int(round(p.delay / dt))}
+    if name == "extra_resonance":
+        return {"f_n_Hz": float(f"{p.res[0]:.5g}"), "zeta": float(f"{p.res[1]:.4g}")}
+    if name == "thermal_drift":
+        return {"rate_per_s": float(f"{p.rate:.5g}"), "curvature_per_s2": float(f"{p.curv:.5g}")}
+    if name == "hysteresis_shape":
+        return {"operators": len(p.thresholds),
+                "thresholds": [float(f"{v:.5g}") for v in p.thresholds]}
+    return {}

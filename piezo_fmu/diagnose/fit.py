@@ -1,0 +1,360 @@
+"""Fitting model structures to recordings: recalibration of the nominal model and the candidates.
+
+Every evaluation re-solves the linear parameters (PI weights, channel offsets, sensor gain, drift
+polynomial) by bounded least squares (:func:`.engine.solve_linear`, variable projection); the few
+nonlinear ones (the amplifier lag, the saturation, the mechanisms' time constants, limits,
+frequencies) are fitted by ``scipy.optimize.least_squares`` in log coordinates (Jacobian columns on
+two threads), started from a coarse screening (:meth:`Fitter.quick`, weights held). An integer
+command delay is profiled (see :mod:`.catalogue` and :mod:`.run`).
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import least_squares, minimize_scalar
+
+from .engine import Params, predict, replay, residuals, solve_linear
+
+__all__ = ["FitResult", "Fitter", "Structure"]
+
+
+@dataclass(frozen=True)
+class Structure:
+    """Which mechanisms a model has: names from the catalogue; ``creep`` carries its order."""
+
+    effects: tuple = ()
+    creep_order: int = 0
+    saturation: bool = False     # the nominal model's strain saturation (re-fitted, not a finding)
+    shape_extra: int = 0         # operators added by hysteresis_shape
+
+    def with_effect(self, name, shape_extra=0):
+        eff = tuple(sorted(set(self.effects) | {name}))
+        if name == "creep":
+            return replace(self, effects=eff, creep_order=self.creep_order + 1)
+        if name == "hysteresis_shape":
+            return replace(self, effects=eff, shape_extra=shape_extra)
+        return replace(self, effects=eff)
+
+    def without(self, name):
+        eff = tuple(e for e in self.effects if e != name)
+        if name == "creep":
+            return replace(self, effects=eff, creep_order=0)
+        if name == "hysteresis_shape":
+            return replace(self, effects=eff, shape_extra=0)
+        return replace(self, effects=eff)
+
+    @property
+    def drift_terms(self):
+        return 2 if "thermal_drift" in self.effects else 0
+
+    def n_params(self):
+        """Parameters beyond the nominal structure (for information criteria)."""
+        n = 0
+        for e in self.effects:
+            n += {"creep": 2 * self.creep_order, "sensor_leakage": 1, "amplifier_current_limit": 1,
+                  "time_delay": 1, "extra_resonance": 2, "thermal_drift": 2,
+                  "hysteresis_shape": self.shape_extra}.get(e, 1)
+        return n
+
+
+def strip(p: Params, struct: Structure, nominal_thresholds=None) -> Params:
+    """``p`` with every mechanism not in ``struct`` switched off."""
+    q = p.copy()
+    if "hysteresis_shape" not in struct.effects and nominal_thresholds is not None \
+            and len(q.thresholds) != len(nominal_thresholds):
+        q.thresholds = np.asarray(nominal_thresholds, float)
+        q.weights = np.zeros(len(q.thresholds))
+    if "creep" not in struct.effects:
+        q.creep = []
+    else:
+        q.creep = q.creep[:struct.creep_order]
+    if "sensor_leakage" not in struct.effects:
+        q.tau_leak = math.inf
+    if "amplifier_current_limit" not in struct.effects:
+        q.slew = math.inf
+    if "time_delay" not in struct.effects:
+        q.delay = 0.0
+    if "extra_resonance" not in struct.effects:
+        q.res = None
+    if "thermal_drift" not in struct.effects:
+        q.rate = q.curv = 0.0
+    return q
+
+
+# names of the nonlinear parameters of each mechanism (all positive, fitted in log coordinates)
+def free_names(struct: Structure):
+    names = ["tau"] + (["y_sat"] if struct.saturation else [])
+    for j in range(struct.creep_order):
+        names += [f"creep_g{j}", f"creep_tau{j}"]
+    if "sensor_leakage" in struct.effects:
+        names.append("tau_leak")
+    if "amplifier_current_limit" in struct.effects:
+        names.append("slew")
+    if "extra_resonance" in struct.effects:
+        names += ["res_f", "res_zeta"]
+    return names
+
+
+def get_value(p: Params, name):
+    if name.startswith("creep_g"):
+        return p.creep[int(name[7:])][0]
+    if name.startswith("creep_tau"):
+        return p.creep[int(name[9:])][1]
+    if name == "res_f":
+        return p.res[0]
+    if name == "res_zeta":
+        return p.res[1]
+    return getattr(p, name)
+
+
+def set_value(p: Params, name, v):
+    v = float(v)
+    if name.startswith("creep_g"):
+        j = int(name[7:])
+        p.creep[j] = (v, p.creep[j][1])
+    elif name.startswith("creep_tau"):
+        j = int(name[9:])
+        p.creep[j] = (p.creep[j][0], v)
+    elif name == "res_f":
+        p.res = (v, p.res[1])
+    elif name == "res_zeta":
+        p.res = (p.res[0], v)
+    else:
+        setattr(p, name, v)
+
+
+_POOL = None
+
+
+def _pool():
+    """Two worker threads for Jacobian columns (the machine the issue names has two cores)."""
+    global _POOL
+    if _POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="diagnose-jac")
+    return _POOL
+
+
+@dataclass
+class FitResult:
+    params: Params
+    struct: Structure
+    cost: float                       # weighted training SSE
+    nfev: int = 0
+    seconds: float = 0.0
+    info: dict = field(default_factory=dict)
+
+
+class Fitter:
+    """Fits structures to a set of recordings with fixed channel weights ``lam``."""
+
+    def __init__(self, recs, dev, lam, say=None):
+        self.recs = recs
+        self.dev = dev
+        self.lam = dict(lam)
+        self.say = say or (lambda msg: None)
+        self.dt = min(r.dt for r in recs)
+        self.duration = max(r.t[-1] for r in recs)
+        self.fs = 1.0 / self.dt
+        self._replays = {}
+        self._lock = threading.Lock()
+        self._cache = {}
+        self.limits = {}         # name -> (lo, hi) overriding the defaults below
+        self.restart = {}        # name -> value a fit restarts from when it starts at a limit
+        self.noise = {}          # channel -> white-noise floor (set once the baseline is known)
+        self.n_eval = 0
+
+    # -- bounds --------------------------------------------------------------------------------
+    def bounds(self, name, p=None):
+        if name in self.limits:
+            return self.limits[name]
+        dt, T = self.dt, self.duration
+        if name == "tau":
+            return 1e-7, max(0.05, min(1.0, T / 20))
+        if name.startswith("creep_g"):
+            return 1e-4, 3.0
+        if name.startswith("creep_tau"):
+            return max(5 * dt, 0.01), 5 * T
+        if name == "tau_leak":
+            return max(5 * dt, 0.01), 200 * T
+        if name == "slew":
+            r = self.max_rate()
+            return 1e-3 * r, 20 * r
+        if name == "res_f":
+            return 2.0, 0.45 * self.fs
+        if name == "res_zeta":
+            return 2e-3, 0.9
+        if name == "y_sat":
+            return 1e-3, 1e6
+        raise KeyError(name)
+
+    def max_rate(self):
+        """Largest stack-voltage rate the command asks for [V/s] (steps: through the nominal lag)."""
+        k = self.dev.k_amp
+        return max(float(np.max(np.abs(np.diff(r.u)))) * k / r.dt for r in self.recs) + 1e-9
+
+    # -- evaluation ------------------------------------------------------------------------------
+    def replays(self, p: Params):
+        key = (p.tau, p.slew, p.delay, p.u_norm, tuple(np.asarray(p.thresholds).tolist()))
+        rp = self._replays.get(key)
+        if rp is None:
+            rp = [replay(r, self.dev, p) for r in self.recs]
+            with self._lock:
+                while len(self._replays) > 6:
+                    self._replays.pop(next(iter(self._replays)))
+                self._replays[key] = rp
+        return rp
+
+    def varpro(self, p: Params, struct: Structure, gn_iter=1):
+        """Re-solve the linear parameters of ``p`` in place; return the weighted training residual.
+
+        One Gauss-Newton step for the saturation per call: the weights are warm from the previous
+        call, so the steps accumulate over an optimisation (the final solve takes two).
+        """
+        self.n_eval += 1
+        return solve_linear(self.recs, self.dev, p, self.lam, drift_terms=struct.drift_terms,
+                            replays=self.replays(p), gn_iter=gn_iter)
+
+    def cost(self, p: Params, rows="train"):
+        r = residuals(self.recs, self.dev, p, self.lam, self.replays(p), rows=rows)
+        return float(r @ r)
+
+    def _train_data(self, ch):
+        """Cached training rows of channel ``ch``: (y, basis [1, t, t^2] as rows, their Gram, y terms)."""
+        key = ("train", ch)
+        got = self._cache.get(key)
+        if got is None:
+            ys, ts = [], []
+            for r in self.recs:
+                y = getattr(r, ch)
+                if y is not None:
+                    ys.append(y[r.train])
+                    ts.append(r.t[r.train])
+            if not ys:
+                self._cache[key] = None
+                return None
+            y, t = np.concatenate(ys), np.concatenate(ts)
+            basis = np.vstack([np.ones_like(t), t, t * t])
+            got = (y, basis, basis @ basis.T, basis @ y, float(y @ y))
+            self._cache[key] = got
+        return got
+
+    def quick(self, p: Params, drift=False):
+        """Weighted training SSE with the weights held and each channel's gain and offset re-fitted
+        (and a drift polynomial on ``x`` when ``drift``): normal equations on cached sums."""
+        self.n_eval += 1
+        preds = [predict(r, self.dev, p, direct=True) for r in self.recs]
+        sse = 0.0
+        for ch in ("x", "us"):
+            data = self._train_data(ch)
+            if data is None:
+                continue
+            y, basis, bb, by, yy = data
+            pr = np.concatenate([pd[ch][r.train] for r, pd in zip(self.recs, preds)
+                                 if getattr(r, ch) is not None])
+            k = 3 if (drift and ch == "x") else 1
+            g = np.empty((k + 1, k + 1))
+            rhs = np.empty(k + 1)
+            g[0, 0] = pr @ pr
+            g[0, 1:] = g[1:, 0] = basis[:k] @ pr
+            g[1:, 1:] = bb[:k, :k]
+            rhs[0] = pr @ y
+            rhs[1:] = by[:k]
+            try:
+                c = np.linalg.solve(g, rhs)
+            except np.linalg.LinAlgError:
+                c = np.linalg.lstsq(g, rhs, rcond=None)[0]
+            sse += self.lam[ch] * max(yy - float(c @ rhs), 0.0)
+        return sse
+
+    # -- fitting ---------------------------------------------------------------------------------
+    def fit(self, p0: Params, struct: Structure, free=None, max_nfev=12, ftol=1e-5):
+        """Fit the nonlinear parameters ``free`` (default: all of ``struct``) with variable projection."""
+        t0 = time.perf_counter()
+        n0 = self.n_eval
+        p = p0.copy()
+        free = list(free if free is not None else free_names(struct))
+        lo = np.array([math.log(self.bounds(n)[0]) for n in free])
+        hi = np.array([math.log(self.bounds(n)[1]) for n in free])
+        x0 = np.array([math.log(get_value(p, n)) for n in free])
+        for i, n in enumerate(free):
+            if n in self.restart and not (lo[i] + 0.01 < x0[i] < hi[i] - 0.01):
+                x0[i] = math.log(self.restart[n])
+        x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
+
+        last = {}
+
+        def fun(th):
+            for n, v in zip(free, th):
+                set_value(p, n, math.exp(v))
+            r = self.varpro(p, struct)
+            last.update(x=np.array(th), r=r, p=p.copy())
+            return r
+
+        def column(base, th, i, step):
+            q = base.copy()
+            for n, v in zip(free, th):
+                set_value(q, n, math.exp(v))
+            set_value(q, free[i], math.exp(th[i] + step))
+            return (self.varpro(q, struct) - last["r"]) / step
+
+        def jac(th):
+            # forward differences, one parameter per worker (the heavy parts release the GIL)
+            if "x" not in last or not np.array_equal(last["x"], th):
+                fun(th)
+            base = last["p"]
+            steps = [1e-3 * max(1.0, abs(v)) * (1 if v + 1e-3 * max(1.0, abs(v)) <= hi[i] else -1)
+                     for i, v in enumerate(th)]
+            cols = list(_pool().map(lambda i: column(base, th, i, steps[i]), range(len(free))))
+            return np.column_stack(cols)
+
+        if free:
+            sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
+                                max_nfev=max_nfev, ftol=ftol, xtol=1e-4)
+            for n, v in zip(free, sol.x):
+                set_value(p, n, math.exp(v))
+        self.varpro(p, struct, gn_iter=2)
+        c = self.cost(p)
+        return FitResult(p, struct, c, self.n_eval - n0, time.perf_counter() - t0)
+
+    def fit_scalar(self, p0: Params, struct: Structure, name, quick=False, bounds=None, xatol=0.02):
+        """Bounded 1-D search of one parameter (log coordinates); other parameters held."""
+        p = p0.copy()
+        glo, ghi = self.bounds(name)
+        lo, hi = bounds or (glo, ghi)
+        lo, hi = min(max(lo, glo), ghi / 1.5), max(min(hi, ghi), glo * 1.5)     # inside the limits
+        hi = max(hi, lo * 1.5)
+
+        def f(v):
+            set_value(p, name, math.exp(v))
+            if quick:
+                return self.quick(p)
+            r = self.varpro(p, struct)
+            return float(r @ r)
+
+        sol = minimize_scalar(f, bounds=(math.log(lo), math.log(hi)), method="bounded",
+                              options={"xatol": xatol, "maxiter": 40})
+        f(sol.x)
+        return p, float(sol.fun)
+
+    def grid(self, p0: Params, setters):
+        """Screen a list of parameter assignments (dicts name -> value); return the best params."""
+        best, best_c = None, math.inf
+        for assign in setters:
+            p = p0.copy()
+            for n, v in assign.items():
+                if n == "delay":
+                    p.delay = v
+                elif n == "res":
+                    p.res = v
+                else:
+                    set_value(p, n, v)
+            c = self.quick(p)
+            if c < best_c:
+                best, best_c = p, c
+        return best, best_c

@@ -1,0 +1,327 @@
+"""piezo-fmu diagnose: blind recognition on synthetic recordings, the output contract, a real
+recording, speed, and the round trip through rebuilt FMUs.
+
+The synthetic recordings come from :mod:`piezo_fmu.diagnose.synth` (a plant with ordinary parameter
+mismatch plus the mechanisms switched on, and noise); diagnose only ever sees the CSV. The larger
+recognition study (rates, false positives, tables) is ``python -m piezo_fmu.diagnose.evaluate``.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from piezo_fmu.cli import main
+from piezo_fmu.diagnose import diagnose
+from piezo_fmu.diagnose.engine import Recording, device_from_model, params_from_model, predict
+from piezo_fmu.diagnose.synth import NOISE, make_case, write_recording
+from piezo_fmu.model import load_model
+from piezo_fmu.simulate import Signal, simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL = ROOT / "tests" / "data" / "dbo" / "piezo_1hz_sine.csv"
+
+
+def run_blind(tmp_path, case, name="rec.csv", **kw):
+    """Write the case as a CSV and diagnose the file (the truth stays here)."""
+    path = tmp_path / name
+    write_recording(path, case)
+    return diagnose([path], out=tmp_path / "out", force=True, figures=kw.pop("figures", False), **kw)
+
+
+def named(diag):
+    return sorted(f["effect"] for f in diag.result["findings"])
+
+
+def read_fit_csv(path):
+    with open(path) as fh:
+        rows = [r for r in csv.reader(line for line in fh if not line.startswith("#"))]
+    head, body = rows[0], np.array(rows[1:], dtype=float)
+    return {h: body[:, i] for i, h in enumerate(head)}
+
+
+# -- the fitting engine is the core's physics -------------------------------------------------------
+
+def test_engine_replays_the_monolithic_model_with_every_mechanism_on():
+    m = load_model()
+    for sec, key, v in (("amplifier", "I_max", 0.02), ("amplifier", "delay", 3e-4), ("creep", "gains", [0.1, 0.05]),
+                        ("creep", "time_constants", [0.5, 3.0]), ("resonance", "f_n", 800.0),
+                        ("resonance", "zeta", 0.03), ("drift", "rate", 0.02), ("drift", "curvature", -0.001),
+                        ("drift", "offset", 0.3), ("sensor", "tau_leak", 2.0), ("sensor", "offset", 0.01)):
+        m.set(sec, key, v, "test")
+    m.check()
+    dt = 1e-4
+    t = np.arange(30001) * dt
+    u = 1.5 + 1.5 * np.sin(2 * np.pi * 10 * t) + (t > 1.0) * 1.0
+    u[20000:] = np.where((t[20000:] % 0.5) < 0.25, 0.5, 4.0)
+    ref = simulate(m, Signal("table", t=t, values=u, column="u"), t[-1], step=dt, mode="open", noise=False)
+    rec = Recording("a", t, dt, u, ref["x"], ref["us"], np.zeros(t.size, bool))
+    pr = predict(rec, device_from_model(m), params_from_model(m))
+    for c in ("x", "us", "ua"):
+        assert np.max(np.abs(pr[c] - ref[c])) < 1e-6 * np.ptp(ref[c]), c
+    direct = predict(rec, device_from_model(m), params_from_model(m), direct=True)
+    assert np.max(np.abs(direct["x"] - ref["x"])) < 1e-6 * np.ptp(ref["x"])
+
+
+def test_synthetic_recordings_are_reproducible_and_hide_the_truth(tmp_path):
+    a = make_case(3, ["creep"], "mid", ["steps", "sines"], fs=1000.0)
+    b = make_case(3, ["creep"], "mid", ["steps", "sines"], fs=1000.0)
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.us, b.us)
+    write_recording(tmp_path / "r.csv", a)
+    text = (tmp_path / "r.csv").read_text()
+    assert "creep" not in text and "gains" not in text
+    assert text.splitlines()[1] == "time,u,x,us"
+
+
+# -- the output contract ------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def creep_run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("creep")
+    case = make_case(11, ["creep"], "mid", ["steps", "triangles"], fs=2000.0)
+    write_recording(tmp / "rec.csv", case)
+    t0 = time.perf_counter()
+    code = main(["diagnose", str(tmp / "rec.csv"), "--out", str(tmp / "out")])
+    return {"dir": tmp / "out", "rec": tmp / "rec.csv", "code": code, "case": case,
+            "seconds": time.perf_counter() - t0}
+
+
+def test_cli_writes_every_output(creep_run):
+    out = creep_run["dir"]
+    assert creep_run["code"] == 0
+    for name in ("diagnosis.json", "fit.csv", "model.toml", "report.html", "residual_time.png",
+                 "residual_spectrum.png", "fit_before_after.png"):
+        assert (out / name).stat().st_size > 0, name
+    html = (out / "report.html").read_text()
+    assert html.count("data:image/png;base64,") >= 3          # self-contained
+
+
+def test_diagnosis_json_follows_the_interface(creep_run):
+    d = json.loads((creep_run["dir"] / "diagnosis.json").read_text())
+    assert set(d["baseline"]["rmse"]) == {"x", "us"} and d["baseline"]["nrmse"] > 0
+    assert [f["effect"] for f in d["findings"]] == ["creep"]
+    f = d["findings"][0]
+    assert 0.5 < f["confidence"] <= 1.0
+    assert f["channel"] in ("x", "us") and f["channels"] == ["x", "us"]
+    assert f["where"] and all(w["t1"] >= w["t0"] and w["why"] for w in f["where"])
+    assert f["band_hz"][0] < 1.0                             # a slow mechanism
+    truth = creep_run["case"].truth["parameters"]["creep"]
+    main_tau = truth["time_constants"][int(np.argmax(truth["gains"]))]
+    assert any(abs(math.log(t / main_tau)) < math.log(1.5) for t in f["parameters"]["time_constants_s"])
+    assert set(f["rmse_after"]) == {"x", "us"}
+    assert d["final"]["effects"] == ["creep"]
+    assert isinstance(d["unexplained"], list)
+    assert "held out" in d["validation"]["method"]
+    assert 0.2 < d["validation"]["heldout_fraction"] < 0.3
+
+
+def test_fit_csv_lets_anyone_recompute_the_improvement(creep_run):
+    d = json.loads((creep_run["dir"] / "diagnosis.json").read_text())
+    fit = read_fit_csv(creep_run["dir"] / "fit.csv")
+    assert list(fit) == ["time", "x", "us", "x_nominal", "us_nominal", "x_final", "us_final", "heldout"]
+    ho = fit["heldout"] == 1
+    for c in ("x", "us"):
+        before = math.sqrt(np.mean((fit[c] - fit[f"{c}_nominal"])[ho] ** 2))
+        after = math.sqrt(np.mean((fit[c] - fit[f"{c}_final"])[ho] ** 2))
+        assert before == pytest.approx(d["baseline"]["rmse"][c], rel=1e-3)
+        assert after == pytest.approx(d["final"]["rmse"][c], rel=1e-3)
+        assert after < 0.5 * before                          # creep was most of the misfit
+        assert after < 1.3 * NOISE["mid"][0 if c == "x" else 1]
+
+
+def test_model_toml_is_loadable_and_replays_fit_csv(creep_run):
+    out = creep_run["dir"]
+    model = load_model(out / "model.toml")
+    assert model["creep"]["gains"] and len(model["creep"]["gains"]) == len(model["creep"]["time_constants"])
+    assert main(["validate", str(out / "model.toml")]) == 0
+    fit = read_fit_csv(out / "fit.csv")
+    t = fit["time"] - fit["time"][0]
+    res = simulate(model, Signal("table", t=t, values=creep_run["case"].u, column="u"), t[-1], step=t[1] - t[0],
+                   mode="open", noise=False)
+    assert np.max(np.abs(res["x"] - fit["x_final"])) < 1e-6 * np.ptp(fit["x"])
+
+
+def test_existing_outputs_are_not_overwritten_without_force(creep_run, capsys):
+    out = creep_run["dir"]
+    before = (out / "diagnosis.json").read_bytes()
+    assert main(["diagnose", str(creep_run["rec"]), "--out", str(out), "--quiet"]) == 2
+    assert "exists" in capsys.readouterr().err
+    assert (out / "diagnosis.json").read_bytes() == before
+
+
+def test_bad_recordings_are_user_errors(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("time,volts,x\n0,0,0\n0.1,1,1\n0.2,2,2\n")
+    assert main(["diagnose", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "missing column(s) u" in capsys.readouterr().err
+    bad.write_text("time,u,y\n" + "".join(f"{i * 0.01},{i},{i}\n" for i in range(100)))
+    assert main(["diagnose", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "x, us" in capsys.readouterr().err
+    bad.write_text("time,u,x\n" + "".join(f"{i * 0.01 + (0.003 if i == 50 else 0)},{i},{i}\n" for i in range(100)))
+    assert main(["diagnose", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "uniform" in capsys.readouterr().err
+
+
+# -- blind recognition --------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("seed,noise,kinds", [(21, "low", ["sines", "steps", "chirp"]),
+                                              (22, "high", ["triangles", "chirp"])])
+def test_clean_recordings_name_nothing(tmp_path, seed, noise, kinds):
+    d = run_blind(tmp_path, make_case(seed, [], noise, kinds, fs=2000.0))
+    assert named(d) == []
+    assert d.result["final"]["nothing_missing"]
+    assert "nothing is missing" in d.result["final"]["verdict"]
+
+
+SINGLE = [
+    ("creep", 31, "mid", ["steps", "sines"]),
+    ("sensor_leakage", 32, "mid", ["steps", "chirp"]),
+    ("amplifier_current_limit", 33, "low", ["sines", "steps"]),
+    ("time_delay", 34, "mid", ["chirp", "steps", "triangles"]),
+    ("extra_resonance", 35, "low", ["steps", "chirp"]),
+    ("thermal_drift", 36, "high", ["triangles", "sines"]),
+    ("hysteresis_shape", 37, "mid", ["sines", "triangles"]),
+]
+
+
+@pytest.mark.parametrize("effect,seed,noise,kinds", SINGLE, ids=[s[0] for s in SINGLE])
+def test_each_mechanism_is_named_blind(tmp_path, effect, seed, noise, kinds):
+    case = make_case(seed, [effect], noise, kinds, fs=2000.0)
+    d = run_blind(tmp_path, case)
+    assert named(d) == [effect], d.result["rejected"]
+    f = d.result["findings"][0]
+    assert f["confidence"] > 0.3
+    for c, v in d.result["final"]["rmse"].items():            # explained down to the noise
+        assert v < 1.25 * case.truth["noise"][c]
+
+
+PAIRS = [(("creep", "sensor_leakage"), 41, ["steps", "sines"]),
+         (("amplifier_current_limit", "extra_resonance"), 42, ["steps", "chirp"])]
+
+
+@pytest.mark.parametrize("effects,seed,kinds", PAIRS, ids=["+".join(p[0]) for p in PAIRS])
+def test_pairs_of_mechanisms_are_both_named(tmp_path, effects, seed, kinds):
+    d = run_blind(tmp_path, make_case(seed, list(effects), "mid", kinds, fs=2000.0))
+    assert named(d) == sorted(effects), d.result["rejected"]
+
+
+def test_an_unknown_disturbance_is_described_not_named(tmp_path):
+    case = make_case(51, ["hum"], "mid", ["steps", "triangles"], fs=2000.0)
+    d = run_blind(tmp_path, case)
+    assert named(d) == []
+    hum = case.truth["parameters"]["hum"]["freq"]
+    bands = [u for u in d.result["unexplained"] if u["channel"] == "x"]
+    assert any(u["band_hz"][0] - 2 <= hum <= u["band_hz"][1] + 2 for u in bands), d.result["unexplained"]
+    assert not d.result["final"]["nothing_missing"]
+
+
+def test_a_drifting_sensor_offset_is_not_called_leakage(tmp_path):
+    case = make_case(52, ["sensor_drift"], "mid", ["triangles", "sines", "steps"], fs=2000.0)
+    d = run_blind(tmp_path, case)
+    assert named(d) == [], d.result["findings"]
+    assert any(u["channel"] == "us" and "trend" in u["description"] for u in d.result["unexplained"])
+
+
+def test_columns_units_and_an_inverted_channel(tmp_path):
+    case = make_case(61, ["time_delay"], "low", ["chirp", "steps"], fs=2000.0)
+    path = tmp_path / "renamed.csv"
+    with open(path, "w") as fh:
+        fh.write("# x in metres and pointing the other way\nt,V_cmd,disp,sensor\n")
+        np.savetxt(fh, np.column_stack([case.t, case.u, -case.x * 1e-6, case.us]), delimiter=",", fmt="%.12g")
+    code = main(["diagnose", str(path), "--columns", "time=t,u=V_cmd,x=disp,us=sensor", "--scale", "x=1e6",
+                 "--out", str(tmp_path / "out"), "--quiet", "--no-figures"])
+    assert code == 0
+    d = json.loads((tmp_path / "out" / "diagnosis.json").read_text())
+    assert [f["effect"] for f in d["findings"]] == ["time_delay"]
+    assert d["recordings"][0]["sign"]["x"] == -1
+    fit = read_fit_csv(tmp_path / "out" / "fit.csv")
+    assert np.allclose(fit["x"], -case.x, atol=1e-9)          # reported in the file's orientation
+    assert np.sqrt(np.mean((fit["x"] - fit["x_final"]) ** 2)) < 1.3 * NOISE["low"][0]
+
+
+def test_several_recordings_are_fitted_together(tmp_path):
+    params = {"sensor_leakage": {"tau_leak": 1.5}}
+    a = make_case(71, ["sensor_leakage"], "mid", ["steps"], fs=1000.0, params=params)
+    b = make_case(71, ["sensor_leakage"], "mid", ["sines"], fs=1000.0, params=params)
+    write_recording(tmp_path / "a.csv", a)
+    write_recording(tmp_path / "b.csv", b)
+    d = diagnose([tmp_path / "a.csv", tmp_path / "b.csv"], out=tmp_path / "out", figures=False)
+    assert named(d) == ["sensor_leakage"]
+    assert d.result["findings"][0]["parameters"]["tau_leak_s"] == pytest.approx(1.5, rel=0.1)
+    fit = read_fit_csv(tmp_path / "out" / "fit.csv")
+    assert set(np.unique(fit["recording"])) == {0.0, 1.0}
+
+
+# -- the real recording -------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def real_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("real") / "out"
+    return diagnose([REAL], out=out), out
+
+
+def test_real_recording_improvement_holds_on_held_out_data(real_run):
+    diag, out = real_run
+    res = diag.result
+    assert (REAL.parent / "LICENSE").exists()
+    # units and scale unlike the paper's: the nominal model as given is far off, the recalibrated one close
+    assert res["baseline"]["nominal_as_given_rmse"]["x"] > 50 * res["baseline"]["rmse"]["x"]
+    fit = read_fit_csv(out / "fit.csv")
+    ho = fit["heldout"] == 1
+    before = math.sqrt(np.mean((fit["x"] - fit["x_nominal"])[ho] ** 2))
+    after = math.sqrt(np.mean((fit["x"] - fit["x_final"])[ho] ** 2))
+    assert after < 0.8 * before                           # the claimed improvement holds on held-out data
+    # a slow mechanism: creep (the data nearly as well support a drift; the rival is named)
+    assert {"creep", "thermal_drift"} & {f["effect"] for f in res["findings"]}
+    # what it cannot name is described: a residual locked to the 1 Hz drive
+    assert any("harmonic" in u["description"] for u in res["unexplained"])
+
+
+# -- the benchmark's size (its speed is measured by `piezo-fmu bench`, diagnose_s) --------------------
+
+@pytest.mark.slow
+def test_twenty_seconds_at_ten_kilohertz_names_both_mechanisms(tmp_path):
+    case = make_case(5, ["creep", "time_delay"], "mid", None, fs=10000.0, duration=20.0)
+    path = tmp_path / "big.csv"
+    write_recording(path, case)
+    assert case.t.size == 200001
+    d = diagnose([path], out=tmp_path / "out")
+    assert named(d) == ["creep", "time_delay"]
+    assert d.result["final"]["rmse"]["x"] < 0.5 * d.result["baseline"]["rmse"]["x"]
+
+
+# -- back into the FMUs ----------------------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_fmus_rebuilt_from_the_diagnosed_model_reproduce_the_recording(creep_run, tmp_path):
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    build_fmu = pytest.importorskip("build_fmu")
+    cosim = pytest.importorskip("piezo_fmu.cosim")
+    out = creep_run["dir"]
+    fmus = tmp_path / "fmus"
+    build_fmu.build_all(out / "model.toml", fmus, ssp=False, log=lambda msg: None)
+    fit = read_fit_csv(out / "fit.csv")
+    t = fit["time"] - fit["time"][0]
+    dt = float(t[1] - t[0])
+    res = cosim.cosimulate(fmus, Signal("table", t=t, values=creep_run["case"].u, column="u"), float(t[-1]),
+                           step=dt, mode="open")
+    n = t.size
+    x_co = np.asarray(res["x"][:n])
+    us_co = np.asarray(res["us"][:n])
+    d = json.loads((out / "diagnosis.json").read_text())
+    noise = d["baseline"]["noise"]
+    # the co-simulation is the final model (up to the actuator's sub-steps and the sensor noise)...
+    assert np.sqrt(np.mean((x_co - fit["x_final"]) ** 2)) < 0.2 * noise["x"]
+    assert np.sqrt(np.mean((us_co - fit["us_final"]) ** 2)) < 1.5 * noise["us"]
+    # ...and so reproduces the recording as well as the diagnosis says, on its held-out part
+    ho = fit["heldout"] == 1
+    assert np.sqrt(np.mean((x_co - fit["x"])[ho] ** 2)) < 1.05 * d["final"]["rmse"]["x"] + 0.1 * noise["x"]
+    shutil.rmtree(fmus, ignore_errors=True)
