@@ -150,13 +150,19 @@ def test_ctrl_c_in_a_real_process_leaves_no_partial_file(tmp_path):
     out = tmp_path / "long.csv"
     proc = subprocess.Popen([sys.executable, "-m", "piezo_fmu.cli", "simulate", "--stop-time", "60",
                              "--engine", "python", "--out", str(out), "--quiet"],
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            # a shell's background job inherits SIGINT ignored, and Python then never
+                            # turns it into KeyboardInterrupt: give the child a terminal's default
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.time() + 60
     while time.time() < deadline and not any(tmp_path.iterdir()):
         time.sleep(0.05)
     time.sleep(0.5)
     proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
+    try:
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
     assert proc.returncode == 130, err
     assert "interrupted" in err
     assert list(tmp_path.iterdir()) == []
