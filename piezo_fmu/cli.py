@@ -161,52 +161,63 @@ def summarize(data):
             "rms_um": float(np.sqrt(np.mean(e * e)))}
 
 
-def cmd_simulate(args):
+def run_to_outputs(args, run, plot_title):
+    """Run ``run(sink=None)`` (``simulate`` or ``cosimulate``) and write ``args.out``/``args.plot``.
+
+    With ``--out`` and no plot the rows stream to the CSV as they are computed (memory stays flat
+    on long runs) and the tracking-error summary is accumulated on the way; otherwise the run is
+    kept in memory. Returns ``(result, summary)``, the summary in um (see :func:`summarize`).
+    """
+    import numpy as np
+
     from .io import atomic_writer, check_writable
+    from .simulate import COLUMNS
+
+    for path in (args.out, args.plot):        # before any work: never overwrite without --force
+        if path:
+            check_writable(path, args.force)
+    if args.out and not args.plot:
+        acc = {"n": 0, "sum_abs": 0.0, "sum_sq": 0.0, "max": 0.0}
+        with atomic_writer(args.out, "w", force=args.force) as fh:
+            fh.write(CSV_HEADER)
+            write = _csv_sink(fh)
+
+            def sink(rows):
+                write(rows)
+                e = rows[:, 2] - rows[:, 1]
+                if e.size:
+                    acc["n"] += e.size
+                    acc["sum_abs"] += float(np.sum(np.abs(e)))
+                    acc["sum_sq"] += float(np.sum(e * e))
+                    acc["max"] = max(acc["max"], float(np.max(np.abs(e))))
+
+            res = run(sink=sink)
+        n = max(acc["n"], 1)
+        return res, {"max_um": acc["max"], "avg_um": acc["sum_abs"] / n, "rms_um": math.sqrt(acc["sum_sq"] / n)}
+    res = run()
+    if args.out:
+        with atomic_writer(args.out, "w", force=args.force) as fh:
+            fh.write(CSV_HEADER)
+            _csv_sink(fh)(np.column_stack([res.data[c] for c in COLUMNS]))
+    if args.plot:
+        plot_run(res.data, args.plot, plot_title(res), args.force)
+    return res, summarize(res.data)
+
+
+def cmd_simulate(args):
     from .model import load_model
     from .simulate import simulate
 
     model = load_model(args.model)
     signal = signal_from_args(args)
-    if args.out:
-        check_writable(args.out, args.force)
-    if args.plot:
-        check_writable(args.plot, args.force)
     bar = Progress("simulate", args.quiet)
-    if args.out and not args.plot:
-        import numpy as np
 
-        stats = {"n": 0, "sum_abs": 0.0, "sum_sq": 0.0, "max": 0.0}
+    def run(sink=None):
+        return simulate(model, signal, args.stop_time, step=args.step, mode=args.mode,
+                        inverse=args.inverse, record_step=args.record_step, engine=args.engine,
+                        progress=bar, sink=sink)
 
-        def sink_stats(rows, write):
-            write(rows)
-            e = rows[:, 2] - rows[:, 1]
-            stats["n"] += e.size
-            stats["sum_abs"] += float(np.sum(np.abs(e)))
-            stats["sum_sq"] += float(np.sum(e * e))
-            stats["max"] = max(stats["max"], float(np.max(np.abs(e))) if e.size else 0.0)
-
-        with atomic_writer(args.out, "w", force=args.force) as fh:
-            fh.write(CSV_HEADER)
-            write = _csv_sink(fh)
-            res = simulate(model, signal, args.stop_time, step=args.step, mode=args.mode,
-                           inverse=args.inverse, record_step=args.record_step, engine=args.engine,
-                           progress=bar, sink=lambda rows: sink_stats(rows, write))
-        n = max(stats["n"], 1)
-        summary = {"max_um": stats["max"], "avg_um": stats["sum_abs"] / n,
-                   "rms_um": math.sqrt(stats["sum_sq"] / n)}
-    else:
-        res = simulate(model, signal, args.stop_time, step=args.step, mode=args.mode,
-                       inverse=args.inverse, record_step=args.record_step, engine=args.engine,
-                       progress=bar)
-        summary = summarize(res.data)
-        if args.out:
-            with atomic_writer(args.out, "w", force=args.force) as fh:
-                fh.write(CSV_HEADER)
-                _csv_sink(fh)(__import__("numpy").column_stack([res.data[c] for c in res.data]))
-        if args.plot:
-            plot_run(res.data, args.plot, f"monolithic, {res.info['mode']}, {res.info['signal']}",
-                     args.force)
+    res, summary = run_to_outputs(args, run, lambda r: f"monolithic, {r.info['mode']}, {r.info['signal']}")
     say(args, f"simulated {res.n_steps} steps of {res.step:g} s ({res.engine} engine, "
               f"{res.samples_per_s:,.0f} steps/s); tracking error max {summary['max_um']:.4f} um, "
               f"avg {summary['avg_um']:.4f} um, rms {summary['rms_um']:.4f} um")

@@ -801,48 +801,21 @@ def run_component(fmu, name, inputs: dict, outputs, step, t0=0.0, model=None, st
 
 def run_cli(args):
     """``piezo-fmu cosim``: as ``simulate``, with the three FMUs coupled by this master."""
-    from .cli import CSV_HEADER, Progress, _csv_sink, plot_run, say, signal_from_args, summarize
-    from .io import atomic_writer, check_writable
+    from .cli import Progress, run_to_outputs, say, signal_from_args
     from .model import load_model
 
     model = load_model(args.model)
     signal = signal_from_args(args)
     fmus = fmu_paths(args.fmu_dir)
-    if args.out:
-        check_writable(args.out, args.force)
-    if args.plot:
-        check_writable(args.plot, args.force)
     bar = Progress("cosim", args.quiet)
     kw = {"step": args.step, "algorithm": args.algorithm, "mode": args.mode, "inverse": args.inverse,
           "model": model, "record_step": args.record_step, "progress": bar}
-    if args.out and not args.plot:
-        stats = {"n": 0, "sum_abs": 0.0, "sum_sq": 0.0, "max": 0.0}
 
-        def sink_stats(rows, write):
-            write(rows)
-            e = rows[:, 2] - rows[:, 1]
-            stats["n"] += e.size
-            stats["sum_abs"] += float(np.sum(np.abs(e)))
-            stats["sum_sq"] += float(np.sum(e * e))
-            stats["max"] = max(stats["max"], float(np.max(np.abs(e))) if e.size else 0.0)
+    def run(sink=None):
+        return cosimulate(fmus, signal, args.stop_time, sink=sink, **kw)
 
-        with atomic_writer(args.out, "w", force=args.force) as fh:
-            fh.write(CSV_HEADER)
-            write = _csv_sink(fh)
-            res = cosimulate(fmus, signal, args.stop_time, sink=lambda rows: sink_stats(rows, write), **kw)
-        n = max(stats["n"], 1)
-        summary = {"max_um": stats["max"], "avg_um": stats["sum_abs"] / n,
-                   "rms_um": math.sqrt(stats["sum_sq"] / n)}
-    else:
-        res = cosimulate(fmus, signal, args.stop_time, **kw)
-        summary = summarize(res.data)
-        if args.out:
-            with atomic_writer(args.out, "w", force=args.force) as fh:
-                fh.write(CSV_HEADER)
-                _csv_sink(fh)(np.column_stack([res.data[c] for c in COLUMNS]))
-        if args.plot:
-            plot_run(res.data, args.plot, f"co-simulation ({res.info['algorithm']}), {res.info['mode']}, "
-                                          f"{res.info['signal']}", args.force)
+    res, summary = run_to_outputs(args, run, lambda r: f"co-simulation ({r.info['algorithm']}), "
+                                                       f"{r.info['mode']}, {r.info['signal']}")
     say(args, f"co-simulated {res.n_steps} steps of {res.step:g} s ({res.info['algorithm']}, 3 FMUs, "
               f"{res.info['us_per_step']:.0f} us per step); tracking error max {summary['max_um']:.4f} um, "
               f"avg {summary['avg_um']:.4f} um, rms {summary['rms_um']:.4f} um")
