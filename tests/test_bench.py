@@ -15,9 +15,12 @@ def test_bench_tiny_writes_every_key(tmp_path, capsys):
     # the figures are consistent with each other
     assert math.isclose(r["cosim_to_floor"], r["cosim_us_per_step"] / r["floor_us_per_step"])
     assert math.isclose(r["cosim_realtime_factor"], 1e-4 / (r["cosim_us_per_step"] * 1e-6))
-    # the co-simulation does more than the pass-through floor, and the physics is not free
-    assert r["cosim_us_per_step"] > r["floor_us_per_step"]
-    assert r["pi_forward_interpreted_ns_per_sample_operator"] > 0
+    # (no speed comparisons: at the tiny size a busy machine can make the floor slower than the
+    # co-simulation, as it once did in CI)
+    for key in ("monolithic_python_samples_per_s", "pi_forward_interpreted_ns_per_sample_operator",
+                "pi_inverse_ns_per_sample_operator"):
+        assert math.isfinite(r[key]) and r[key] > 0, key
+    assert r["diagnose_recording"]["channels"] == ["x", "us"]
     assert r["machine"]["cores"] >= 1
     printed = capsys.readouterr().out
     assert "us/step" in printed and "samples/s" in printed
