@@ -75,6 +75,14 @@ def _kernels():
             out[k + 1] = ua
         return out
 
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def play(z, v, r):
+        # one play operator (threshold r) moved by the input v: the rule of core.hysteresis.pi_step
+        lo = v - r
+        if z < lo:
+            return lo
+        return min(z, v + r)
+
     @numba.njit(cache=True, nogil=True)
     def play_run(v, r, z):
         # the operators are independent: one pass per operator keeps the writes contiguous
@@ -83,13 +91,7 @@ def _kernels():
             zi = 0.0
             row = z[i]
             for k in range(v.size):
-                vk = v[k]
-                lo = vk - ri
-                if zi < lo:
-                    zi = lo
-                else:
-                    hi = vk + ri
-                    zi = min(zi, hi)
+                zi = play(zi, v[k], ri)
                 row[k] = zi
         return z
 
@@ -102,13 +104,7 @@ def _kernels():
             wi = w[i]
             zi = 0.0
             for k in range(v.size):
-                vk = v[k]
-                lo = vk - ri
-                if zi < lo:
-                    zi = lo
-                else:
-                    hi = vk + ri
-                    zi = min(zi, hi)
+                zi = play(zi, v[k], ri)
                 out[k] += wi * zi
         if y_inv > 0.0:
             for k in range(v.size):
