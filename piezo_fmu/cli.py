@@ -111,6 +111,10 @@ def add_run_options(p, cosim=False):
                        help="internal step [s] (default: the model's simulation.step, 1e-5)")
         g.add_argument("--engine", choices=("auto", "numba", "python"), default="auto",
                        help="compiled (numba) or interpreted loop; same results (default: auto)")
+        g.add_argument("--control-step", type=_positive("--control-step"), default=None, metavar="S",
+                       help="sample time [s] of the sensor and compensator, a multiple of --step "
+                            "(default: every internal step); with 1e-4 the loop is the one "
+                            "`piezo-fmu cosim --step 1e-4` computes")
     g.add_argument("--mode", choices=("open", "ff", "fb", "ff+fb"), default=None,
                    help="compensation: open loop, inverse feedforward, PID feedback, or both "
                         "(default: the model's, ff+fb)")
@@ -214,12 +218,14 @@ def cmd_simulate(args):
 
     def run(sink=None):
         return simulate(model, signal, args.stop_time, step=args.step, mode=args.mode,
-                        inverse=args.inverse, record_step=args.record_step, engine=args.engine,
-                        progress=bar, sink=sink)
+                        inverse=args.inverse, record_step=args.record_step,
+                        control_step=args.control_step, engine=args.engine, progress=bar, sink=sink)
 
     res, summary = run_to_outputs(args, run, lambda r: f"monolithic, {r.info['mode']}, {r.info['signal']}")
+    ctrl = res.info["control_step"]
+    sampled = f", compensator every {ctrl:g} s" if ctrl != res.step else ""
     say(args, f"simulated {res.n_steps} steps of {res.step:g} s ({res.engine} engine, "
-              f"{res.samples_per_s:,.0f} steps/s); tracking error max {summary['max_um']:.4f} um, "
+              f"{res.samples_per_s:,.0f} steps/s{sampled}); tracking error max {summary['max_um']:.4f} um, "
               f"avg {summary['avg_um']:.4f} um, rms {summary['rms_um']:.4f} um")
     if args.out:
         say(args, f"wrote {args.out}")

@@ -8,6 +8,12 @@ then compensator, each step), so the two can be compared sample by sample::
             us[k+1] = sensor.step(F, h)
             uc[k+1] = compensator.step(t_k+1, x_ref(t_k+1), us[k+1], h)
 
+With ``control_step`` (a multiple of the step) the sensor is sampled and the compensator acts only
+every ``control_step``, the command held in between, while the actuator keeps the fine step: a
+digital controller on a continuous plant, and exactly the loop a Gauss-Seidel co-simulation with
+the communication step ``control_step`` computes when the actuator FMU sub-steps at the same
+fine step (tested to round-off).
+
 :func:`closed_loop` is the loop body. It calls the kernels of :mod:`piezo_fmu.core` and runs
 either interpreted (the pure Python/NumPy engine) or compiled by numba (``engine="numba"``):
 :func:`compiled_kernels` re-binds the same kernel functions to their compiled callees, so there is
@@ -111,7 +117,7 @@ class SimResult:
         return self.n_steps / self.wall_s if self.wall_s > 0 else math.inf
 
 
-def closed_loop(n, h, t0, k0, rec_every, xref, use_ext, noise,
+def closed_loop(n, h, t0, k0, rec_every, ctrl_every, xref, use_ext, noise,
                 amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
                 cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, k_force,
                 me_phi, me_g, me_cd, me_xs, me_tmp, drift, act_out, act_time,
@@ -121,27 +127,41 @@ def closed_loop(n, h, t0, k0, rec_every, xref, use_ext, noise,
     ``rec_every``-th step into ``rec``. Times are ``t0 + k h`` (no accumulated round-off, so the
     result does not depend on how a run is split into chunks).
 
-    ``xref[k]`` is the external reference at ``t0 + (k0 + k) h`` (used when ``use_ext``); ``noise[k]`` the
-    sensor noise at step ``k + 1``. Returns the number of rows written to ``rec``
-    (columns: t, x_ref, x, us, uc, ua, F). All state arrays are updated in place.
+    The actuator advances every step; the sensor is sampled and the compensator computes a new
+    command every ``ctrl_every``-th step (its step ``ctrl_every * h``; ``k0`` and, except for the
+    last chunk, ``n`` are multiples of it), the command is held in between.
+    ``xref[k]`` is the external reference at ``t0 + (k0 + k) h`` (used when ``use_ext``); ``noise[m]``
+    the sensor noise of the chunk's ``m + 1``-th sample. Returns the number of rows written to ``rec``
+    (columns: t, x_ref, x, us, uc, ua, F; us and uc as last sampled). All state arrays are updated
+    in place.
     """
     uc = comp_out[0]
+    us = sen_s[2]
     ta = act_time[0]
+    hc = ctrl_every * h
     row = 0
-    us = 0.0
+    m = 0
+    count = ctrl_every
+    rcount = rec_every
     for k in range(n):
         ta += h
         actuator_step(uc, h, ta, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
                       cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, k_force,
                       me_phi, me_g, me_cd, me_xs, me_tmp, drift, act_out)
-        us = sensor_step(act_out[1], h, sen, sen_s, noise[k])
-        t = t0 + (k0 + k + 1) * h
-        xr = xref[k + 1] if use_ext else 0.0
-        compensator_step(t, xr, us, h, cfg, ref, gains, pid_s, inv_r, inv_w, inv_z, inv_k,
-                         gi_phi, gi_g, gi_cd, gi_xs, gi_tmp, comp_out)
-        uc = comp_out[0]
-        if (k + 1) % rec_every == 0:
-            rec[row, 0] = t
+        count -= 1
+        rcount -= 1
+        if count == 0:
+            count = ctrl_every
+            t = t0 + (k0 + k + 1) * h
+            us = sensor_step(act_out[1], hc, sen, sen_s, noise[m])
+            m += 1
+            xr = xref[k + 1] if use_ext else 0.0
+            compensator_step(t, xr, us, hc, cfg, ref, gains, pid_s, inv_r, inv_w, inv_z, inv_k,
+                             gi_phi, gi_g, gi_cd, gi_xs, gi_tmp, comp_out)
+            uc = comp_out[0]
+        if rcount == 0:
+            rcount = rec_every
+            rec[row, 0] = t0 + (k0 + k + 1) * h
             rec[row, 1] = comp_out[1]
             rec[row, 2] = act_out[0]
             rec[row, 3] = us
@@ -156,7 +176,7 @@ def closed_loop(n, h, t0, k0, rec_every, xref, use_ext, noise,
 # -- the compiled engine ------------------------------------------------------------------------
 
 _KERNEL_ORDER = (
-    (hysteresis, "pi_step"), (plant, "amp_step"), (linear, "lti_advance"),
+    (hysteresis, "pi_tail"), (hysteresis, "pi_step"), (plant, "amp_step"), (linear, "lti_advance"),
     (control, "reference_value"), (control, "pid_step"),
     (plant, "actuator_step"), (plant, "sensor_step"), (control, "compensator_step"),
 )
@@ -244,6 +264,18 @@ def _write_back(act, sen, comp, a, s, c):
     comp.out[:] = c[13].tolist()
 
 
+def _multiple(option, value, h):
+    """``value`` [s] as a whole number of steps ``h`` (None: 1)."""
+    if value is None:
+        return 1
+    if not (value > 0 and math.isfinite(value)):
+        raise UserError(f"{option}: must be a positive number of seconds, got {value}")
+    k = max(1, int(round(value / h)))
+    if abs(k * h - value) > 1e-9 * value:
+        raise UserError(f"{option}: {value} s is not a whole number of steps of {h} s")
+    return k
+
+
 def _pick_engine(engine):
     if engine == "auto":
         return "numba" if numba_available() else "python"
@@ -255,8 +287,8 @@ def _pick_engine(engine):
 
 
 def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=None, inverse=None,
-             record_step=None, engine="auto", noise=True, t0=0.0, progress=None, sink=None,
-             chunk=50_000) -> SimResult:
+             record_step=None, control_step=None, engine="auto", noise=True, t0=0.0, progress=None,
+             sink=None, chunk=50_000) -> SimResult:
     """Run the monolithic closed loop.
 
     Parameters
@@ -273,6 +305,11 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
         Compensator mode (open, ff, fb, ff+fb) and inverse (static, dynamic); default: the model's.
     record_step : float, optional
         Recording interval [s], a multiple of ``step`` (default: every step).
+    control_step : float, optional
+        Sample time [s] of the sensor and the compensator, a multiple of ``step`` (default:
+        ``step``, i.e. the controller acts every internal step). A digital controller sampling
+        at ``control_step`` while the actuator is integrated at ``step``: the closed loop the
+        Gauss-Seidel co-simulation computes with the communication step ``control_step``.
     engine : {"auto", "numba", "python"}
         Compiled or interpreted loop; results agree to round-off.
     noise : bool
@@ -292,6 +329,7 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
     if n_total < 1:
         raise UserError(f"--stop-time: {stop_time} s is shorter than one step of {h} s")
     rec_every = 1 if record_step is None else max(1, int(round(record_step / h)))
+    ctrl_every = _multiple("--control-step", control_step, h)
     engine = _pick_engine(engine)
 
     act = make_actuator(model)
@@ -310,12 +348,18 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
     use_ext = signal.kind == "table"
     x0 = float(signal.x_ref_at(t0, k_ideal, k_amp)) if use_ext else 0.0
     act.prepare(h)
-    sen.prepare(h)
-    comp.prepare(h)
+    sen.prepare(h * ctrl_every)
+    comp.prepare(h * ctrl_every)
     comp.initialize(t0, x0, sen.us)
 
     a, s, c = _unit_args(act, sen, comp, engine == "numba")
     runner = compiled_kernels()["closed_loop"] if engine == "numba" else closed_loop
+    compile_s = 0.0
+    if engine == "numba":      # compile (first call in the process) outside the timed loop
+        w0 = time.perf_counter()
+        runner(0, h, t0, 0, rec_every, ctrl_every, np.zeros(1), use_ext, np.zeros(1), *a, *s, *c,
+               np.empty((1, 7)))
+        compile_s = time.perf_counter() - w0
 
     keep = [] if sink is None else None
     first = np.array([[t0, comp.out[1], act.x, sen.us, comp.uc, act.ua, act.F]])
@@ -323,7 +367,8 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
         keep.append(first)
     else:
         sink(first)
-    chunk = max(rec_every, (chunk // rec_every) * rec_every)
+    period = rec_every * ctrl_every // math.gcd(rec_every, ctrl_every)
+    chunk = max(period, (chunk // period) * period)
     done = 0
     wall = 0.0
     last = first
@@ -331,11 +376,11 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
         n = min(chunk, n_total - done)
         xref = (signal.x_ref_at(t0 + h * np.arange(done, done + n + 1), k_ideal, k_amp) if use_ext
                 else np.zeros(1))
-        noise_arr = sen.noise.take(n)
+        noise_arr = sen.noise.take(n // ctrl_every)
         rec = np.empty((n // rec_every + 1, 7))
         # the recording phase continues across chunks because chunks are multiples of rec_every
         w0 = time.perf_counter()
-        rows = runner(n, h, t0, done, rec_every, xref, use_ext, noise_arr, *a, *s, *c, rec)
+        rows = runner(n, h, t0, done, rec_every, ctrl_every, xref, use_ext, noise_arr, *a, *s, *c, rec)
         wall += time.perf_counter() - w0
         done += n
         last = rec[:rows]
@@ -347,8 +392,8 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
             progress(done / n_total)
     if engine == "numba":
         _write_back(act, sen, comp, a, s, c)
-    sen.us = float(last[-1, 3]) if len(last) else sen.us
     table = np.vstack(keep) if keep is not None else last
     data = {name: table[:, i] for i, name in enumerate(COLUMNS)}
-    info = {"mode": cmode, "inverse": cinv, "signal": signal.describe(), "units": dict(UNITS)}
+    info = {"mode": cmode, "inverse": cinv, "signal": signal.describe(), "units": dict(UNITS),
+            "control_step": h * ctrl_every, "compile_s": compile_s}
     return SimResult(data, engine, h, wall, n_total, info)

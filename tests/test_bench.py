@@ -18,8 +18,10 @@ def test_bench_tiny_writes_every_key(tmp_path, capsys):
     # (no speed comparisons: at the tiny size a busy machine can make the floor slower than the
     # co-simulation, as it once did in CI)
     for key in ("monolithic_python_samples_per_s", "pi_forward_interpreted_ns_per_sample_operator",
-                "pi_inverse_ns_per_sample_operator"):
+                "pi_inverse_ns_per_sample_operator", "monolithic_single_rate_samples_per_s",
+                "monolithic_single_rate_speedup_vs_cosim", "pi_forward_ns_per_sample"):
         assert math.isfinite(r[key]) and r[key] > 0, key
+    assert r["monolithic_control_step_s"] == 1e-4     # the controller sampled as in the co-simulation
     assert r["diagnose_recording"]["channels"] == ["x", "us"]
     assert r["machine"]["cores"] >= 1
     printed = capsys.readouterr().out

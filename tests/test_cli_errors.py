@@ -103,6 +103,9 @@ def test_bad_option_values_exit_2(capsys):
     with pytest.raises(SystemExit) as exc:
         main(["simulate", "--mode", "turbo"])
     assert exc.value.code == 2
+    code = main(["simulate", "--control-step", "2.5e-5", "--stop-time", "0.01", "--quiet"])
+    assert code == 2
+    assert "--control-step: 2.5e-05 s is not a whole number of steps of 1e-05 s" in capsys.readouterr().err
 
 
 def test_existing_output_is_not_overwritten_without_force(tmp_path, capsys):

@@ -4,7 +4,17 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from piezo_fmu.core.hysteresis import Hysteresis, PrandtlIshlinskii, pi_step, play_scan
+from piezo_fmu.core.hysteresis import (
+    Hysteresis,
+    PrandtlIshlinskii,
+    pi_load,
+    pi_memory,
+    pi_save,
+    pi_state,
+    pi_step,
+    pi_table,
+    play_scan,
+)
 
 PAPER_R = [0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8]
 PAPER_W = [0.58751, 0.46211, 0.06758, 0.00092, 0.30240, 0.99999, 0.20197, 0.73566, 0.15913]
@@ -141,6 +151,49 @@ def test_kernel_updates_memory_in_place_and_state_round_trips():
     unit.set_state(saved)
     b = [unit.step(u) for u in (12.0, 3.0, 20.0)]
     assert a == b
-    z = [0.0, 0.0]
-    pi_step(2.0, [0.0, 1.0], [1.0, 1.0], z)
-    assert z == [2.0, 1.0]
+    r, z = [0.0, 1.0], pi_state(2)
+    assert pi_step(2.0, r, pi_table(r, [1.0, 1.0]), z) == 3.0
+    assert pi_memory(r, z) == [2.0, 1.0]
+
+
+def _clamped(v, r, z):
+    """The play-operator rule written out: every operator clamped to [v - r_i, v + r_i]."""
+    return [min(max(zi, v - ri), v + ri) for zi, ri in zip(z, r)]
+
+
+@settings(max_examples=200, deadline=None)
+@given(pi_models(), signals(), st.integers(0, 400))
+def test_kernel_equals_the_clamping_rule_and_saves_exactly(model, v, cut):
+    """The O(1) kernel (followers written out only at reversals) against the plain rule applied to
+    every operator at every step; a memory saved at any step and loaded into a fresh memory
+    continues bit for bit; loading it with other weights gives the new weights' output."""
+    r, w = list(model.thresholds), list(model.weights)
+    table, z, ref = pi_table(r, w), pi_state(len(r)), [0.0] * len(r)
+    cut = min(cut, len(v) - 1)
+    tail = []
+    for k, x in enumerate(v.tolist()):
+        y = pi_step(x, r, table, z)
+        ref = _clamped(x, r, ref)
+        assert pi_memory(r, z) == pytest.approx(ref, rel=0, abs=1e-12)
+        assert y == pytest.approx(sum(a * b for a, b in zip(w, ref)), rel=0, abs=1e-9)
+        if k == cut:
+            saved = pi_save(r, z)
+        elif k > cut:
+            tail.append(y)
+    again = pi_state(len(r))
+    pi_load(r, table, again, saved)
+    assert [pi_step(x, r, table, again) for x in v[cut + 1:].tolist()] == tail
+    w2 = [2.0 * x for x in w]
+    other = pi_state(len(r))
+    pi_load(r, pi_table(r, w2), other, pi_save(r, z))
+    assert pi_step(v[-1], r, pi_table(r, w2), other) == pytest.approx(
+        sum(a * b for a, b in zip(w2, ref)), rel=0, abs=1e-9)
+
+
+def test_memory_load_rejects_a_wrong_length_or_follower_count():
+    r = [0.0, 0.5]
+    z = pi_state(2)
+    with pytest.raises(ValueError, match="needs 2 or 5 values"):
+        pi_load(r, pi_table(r, [1.0, 1.0]), z, [0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="follower count"):
+        pi_load(r, pi_table(r, [1.0, 1.0]), z, [0.0, 0.0, 0.0, 3.0, 1.0])

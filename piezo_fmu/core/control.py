@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 
-from .hysteresis import PrandtlIshlinskii, pi_step
+from .hysteresis import PrandtlIshlinskii, pi_load, pi_save, pi_state, pi_step, pi_table
 from .linear import LinearSystem, lti_advance, same_step
 
 __all__ = ["MODES", "INVERSES", "SIGNALS", "reference_value", "pid_step", "compensator_step",
@@ -187,8 +187,8 @@ class Compensator:
         self.model = model
         inv = model.inverse()
         self.inv_r = list(inv.thresholds)
-        self.inv_w = list(inv.weights)
-        self.inv_z = [0.0] * inv.n
+        self.inv_w = pi_table(inv.thresholds, inv.weights)
+        self.inv_z = pi_state(inv.n)
         self.inv_k = [1.0 / inv.in_scale, inv.out_scale]
         self.g_num, self.g_den = list(g_num), list(g_den)
         self.filter_hz = float(filter_hz)
@@ -201,6 +201,10 @@ class Compensator:
         self.pid_s = [0.0, 0.0, 0.0, 0.0]
         self.out = [0.0, 0.0, 0.0, 0.0]
         self._h = None
+        g = self.ginv
+        # the kernel's arguments after (t, x_ref, us, h), bound once (every list is updated in place)
+        self._args = (self.cfg, self.ref, self.gains, self.pid_s, self.inv_r, self.inv_w, self.inv_z,
+                      self.inv_k, g.phi, g.g, g.cd, g.xs, g.tmp, self.out)
 
     @property
     def uc(self):
@@ -219,20 +223,14 @@ class Compensator:
 
     def initialize(self, t, x_ref_in, us):
         """Initial command from the inputs at the start time ``t`` (no integration)."""
-        g = self.ginv
-        compensator_step(t, x_ref_in, us, 0.0, self.cfg, self.ref, self.gains, self.pid_s,
-                         self.inv_r, self.inv_w, self.inv_z, self.inv_k,
-                         g.phi, g.g, g.cd, g.xs, g.tmp, self.out)
+        compensator_step(t, x_ref_in, us, 0.0, *self._args)
         return self.out[0]
 
     def step(self, t, x_ref_in, us, h):
         """Command for the next interval from inputs sampled at ``t`` [s], after a step ``h`` [s]."""
         if h != self._h:
             self.prepare(h)
-        g = self.ginv
-        compensator_step(t, x_ref_in, us, h, self.cfg, self.ref, self.gains, self.pid_s,
-                         self.inv_r, self.inv_w, self.inv_z, self.inv_k,
-                         g.phi, g.g, g.cd, g.xs, g.tmp, self.out)
+        compensator_step(t, x_ref_in, us, h, *self._args)
         return self.out[0]
 
     def reset(self):
@@ -244,11 +242,11 @@ class Compensator:
         self.out[:] = [0.0, 0.0, 0.0, 0.0]
 
     def get_state(self):
-        return {"inv_z": list(self.inv_z), "ginv": list(self.ginv.xs), "pid": list(self.pid_s),
+        return {"inv_z": pi_save(self.inv_r, self.inv_z), "ginv": list(self.ginv.xs), "pid": list(self.pid_s),
                 "sat": self.cfg[8], "out": list(self.out), "h": self._h}
 
     def set_state(self, s):
-        self.inv_z[:] = [float(v) for v in s["inv_z"]]
+        pi_load(self.inv_r, self.inv_w, self.inv_z, s["inv_z"])
         self.ginv.xs[:] = [float(v) for v in s["ginv"]]
         self.pid_s[:] = [float(v) for v in s["pid"]]
         self.cfg[8] = float(s["sat"])

@@ -27,35 +27,119 @@ import numpy as np
 
 __all__ = [
     "pi_step",
+    "pi_table",
+    "pi_state",
+    "pi_tail",
+    "pi_memory",
+    "pi_save",
+    "pi_load",
     "play_scan",
     "PrandtlIshlinskii",
     "Hysteresis",
 ]
 
 
+def pi_table(r, w):
+    """The weights table of :func:`pi_step`: ``w_0..w_{n-1}``, then the prefix sums
+    ``W_m = sum_{i<m} w_i`` and ``S_m = sum_{i<m} w_i r_i`` for ``m = 0..n`` (length ``3n + 2``)."""
+    n = len(r)
+    table = [float(x) for x in w]
+    wsum, ssum = [0.0], [0.0]
+    for i in range(n):
+        wsum.append(wsum[-1] + table[i])
+        ssum.append(ssum[-1] + table[i] * float(r[i]))
+    return table + wsum + ssum
+
+
+def pi_state(n):
+    """The relaxed memory of :func:`pi_step` for ``n`` operators (every output 0, never moved)."""
+    return [0.0] * (n + 4)
+
+
+def pi_tail(w, z, m, n):
+    """``sum_{i>=m} w_i z_i``: the part of the output held by the operators that do not follow
+    the input (always summed in this order, so the value is a function of the memory)."""
+    t = 0.0
+    for i in range(m, n):
+        t += w[i] * z[i]
+    return t
+
+
 def pi_step(v, r, w, z):
     """Advance every play operator to input ``v`` and return ``sum_i w_i z_i``.
 
-    ``r``, ``w`` and ``z`` are indexable sequences of equal length (Python lists for speed in
-    CPython, NumPy arrays under numba); ``z`` (the operator outputs, i.e. the hysteresis memory)
-    is updated in place, and only where it moves. No allocation: this is the per-step kernel.
+    ``r``: the ``n`` thresholds, ascending with ``r_0 = 0``; ``w``: the weights table of
+    :func:`pi_table`; ``z``: the memory, ``n + 4`` values ``[z_0 .. z_{n-1}, v, m, d, T]``
+    (:func:`pi_state`), updated in place. Python lists in CPython, NumPy arrays under numba.
+
+    The operators that move form a prefix: the memory of a PI model is 1-Lipschitz in the
+    threshold (``|z_i - z_j| <= r_j - r_i``; true of the relaxed state and kept by every step), so
+    ``z_i + r_i`` (and ``z_i - r_i``) is non-decreasing in ``i`` and a rising input ``v`` catches
+    the operators ``z_i < v - r_i`` from ``i = 0`` up to the first that it does not catch (falling:
+    ``z_i > v + r_i``). The ``m`` caught operators then *follow* the input, ``z_i = v - d r_i``
+    (``d`` = +1 rising, -1 falling), until the input turns; only then are their outputs written
+    back ("materialised"). The output is ``v W_m - d S_m + T`` with ``T = sum_{i>=m} w_i z_i``
+    (recomputed by :func:`pi_tail` when ``m`` changes). A step therefore costs O(1) unless the
+    input turns or catches another operator (O(n), a few times per half cycle), and the result is
+    that of clamping every operator to ``[v - r_i, v + r_i]`` (to round-off in the sum).
+    No allocation: this is the per-step kernel.
     """
-    y = 0.0
-    i = 0
-    for ri in r:
-        zi = z[i]
-        lo = v - ri
-        if zi < lo:
-            zi = lo
-            z[i] = zi
-        else:
-            hi = v + ri
-            if zi > hi:
-                zi = hi
-                z[i] = zi
-        y += w[i] * zi
-        i += 1
-    return y
+    n = len(r)
+    vl = z[n]
+    m = int(z[n + 1])
+    d = z[n + 2]
+    if v != vl:
+        s = 1.0 if v > vl else -1.0
+        moved = False
+        if s != d:                               # the input turns: materialise the followers
+            for i in range(m):
+                z[i] = vl - d * r[i]
+            m = 0
+            d = s
+            z[n + 2] = s
+            moved = True
+        while m < n and s * (v - s * r[m] - z[m]) > 0.0:
+            m += 1
+            moved = True
+        if moved:
+            z[n + 1] = float(m)
+            z[n + 3] = pi_tail(w, z, m, n)
+        z[n] = v
+    return v * w[n + m] - d * w[2 * n + 1 + m] + z[n + 3]
+
+
+def pi_memory(r, z):
+    """The operator outputs ``[z_0 .. z_{n-1}]`` of a :func:`pi_step` memory (followers written out)."""
+    n = len(r)
+    vl, m, d = z[n], int(z[n + 1]), z[n + 2]
+    return [vl - d * r[i] if i < m else z[i] for i in range(n)]
+
+
+def pi_save(r, z):
+    """The memory as plain data: the operator outputs, then ``[v, m, d]`` (``T`` is derived)."""
+    n = len(r)
+    return pi_memory(r, z) + [z[n], z[n + 1], z[n + 2]]
+
+
+def pi_load(r, w, z, saved):
+    """Restore :func:`pi_save` data into ``z`` (in place) for the weights table ``w``.
+
+    Also accepts the ``n`` operator outputs alone (no follower information: ``v = z_0``).
+    ``T`` is recomputed with :func:`pi_tail`, so a restored memory continues bit for bit, and
+    continues correctly when the weights have changed since it was saved.
+    """
+    n = len(r)
+    saved = [float(x) for x in saved]
+    if len(saved) == n:
+        saved = saved + [saved[0], 0.0, 0.0]
+    if len(saved) != n + 3:
+        raise ValueError(f"hysteresis state needs {n} or {n + 3} values, got {len(saved)}")
+    m = int(saved[n + 1])
+    if not (0 <= m <= n and saved[n + 1] == m and saved[n + 2] in (-1.0, 0.0, 1.0)):
+        raise ValueError(f"hysteresis state: invalid follower count {saved[n + 1]!r} or direction "
+                         f"{saved[n + 2]!r}")
+    z[:n + 3] = saved
+    z[n + 3] = pi_tail(w, z, m, n)
 
 
 def play_scan(v, r, z0=None):
@@ -196,7 +280,7 @@ class PrandtlIshlinskii:
 class Hysteresis:
     """Stateful PI unit: ``step(u)`` advances the operators to input ``u`` and returns the output.
 
-    The state (the play-operator outputs ``z``, i.e. the hysteresis memory) is explicit:
+    The state (the play-operator memory, see :func:`pi_step`) is explicit:
     :meth:`get_state` / :meth:`set_state` copy it in and out, :meth:`reset` relaxes it.
     """
 
@@ -205,8 +289,8 @@ class Hysteresis:
     def __init__(self, model: PrandtlIshlinskii):
         self.model = model
         self._r = list(model.thresholds)
-        self._w = list(model.weights)
-        self._z = [0.0] * model.n
+        self._w = pi_table(model.thresholds, model.weights)
+        self._z = pi_state(model.n)
         self._inv_in = 1.0 / model.in_scale
         self._out = model.out_scale
 
@@ -220,12 +304,14 @@ class Hysteresis:
 
     def output(self):
         """Current output without advancing."""
-        return self._out * sum(w * z for w, z in zip(self._w, self._z))
+        return self._out * sum(w * z for w, z in zip(self._w, pi_memory(self._r, self._z)))
+
+    def operators(self):
+        """The play-operator outputs [normalised input units]."""
+        return pi_memory(self._r, self._z)
 
     def get_state(self):
-        return list(self._z)
+        return pi_save(self._r, self._z)
 
     def set_state(self, z):
-        if len(z) != len(self._z):
-            raise ValueError(f"hysteresis state needs {len(self._z)} values, got {len(z)}")
-        self._z[:] = [float(x) for x in z]
+        pi_load(self._r, self._w, self._z, z)

@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from .hysteresis import PrandtlIshlinskii, pi_step
+from .hysteresis import PrandtlIshlinskii, pi_load, pi_save, pi_state, pi_step, pi_table
 from .linear import LinearSystem, lti_advance, same_step
 
 EPS0 = 8.8541878128e-12  # vacuum permittivity [F/m]
@@ -82,7 +82,11 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     x_h = pi_k[1] * pi_step(ua * pi_k[0], pi_r, pi_w, pi_z)
     if pi_k[2] != 0.0:
         x_h = x_h / (1.0 + abs(x_h) * pi_k[2])
-    x_free = lti_advance(cr_phi, cr_g, cr_cd, cr_xs, x_h, cr_tmp)
+    if len(cr_tmp):
+        x_free = lti_advance(cr_phi, cr_g, cr_cd, cr_xs, x_h, cr_tmp)
+    else:                    # no creep element: lti_advance's order-0 path, without the call
+        cr_xs[0] = x_h
+        x_free = cr_cd[0] * x_h
     force = k_force * x_free
     x = lti_advance(me_phi, me_g, me_cd, me_xs, force, me_tmp)
     nd2 = len(drift)
@@ -136,8 +140,8 @@ class Actuator:
         self.dly = [0.0, 0.0]
         self.dly_buf = [0.0]
         self.pi_r = list(hysteresis.thresholds)
-        self.pi_w = list(hysteresis.weights)
-        self.pi_z = [0.0] * hysteresis.n
+        self.pi_w = pi_table(hysteresis.thresholds, hysteresis.weights)
+        self.pi_z = pi_state(hysteresis.n)
         self.pi_k = [1.0 / hysteresis.in_scale, hysteresis.out_scale, 1.0 / self.saturation]
         self.creep = LinearSystem(*creep_tf(self.creep_gains, self.creep_taus))
         self.k_force = self.k_a * 1e-6
@@ -147,6 +151,15 @@ class Actuator:
         self._adv_step = None
         self._adv_n = 1
         self.time = 0.0
+        self._bind()
+
+    def _bind(self):
+        """The kernel's arguments after ``(uc, h, t_end)``, bound once (one attribute lookup per
+        step instead of twenty); rebuilt whenever a list is replaced rather than updated in place."""
+        cr, me = self.creep, self.mech
+        self._args = (self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w, self.pi_z,
+                      self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.k_force,
+                      me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out)
 
     # -- configuration ---------------------------------------------------------------------
     def prepare(self, h):
@@ -161,6 +174,7 @@ class Actuator:
             fill = self.dly_buf[int(self.dly[1]) - 1] if len(self.dly_buf) > 1 else 0.0
             self.dly_buf = [fill] * (nd + 1)
             self.dly[0], self.dly[1] = float(nd), 0.0
+            self._bind()
         self._h = h
 
     def substeps(self, step):
@@ -173,11 +187,7 @@ class Actuator:
         if h != self._h:
             self.prepare(h)
         self.time += h
-        cr, me = self.creep, self.mech
-        actuator_step(uc, h, self.time, self.amp, self.amp_s, self.dly, self.dly_buf,
-                      self.pi_r, self.pi_w, self.pi_z, self.pi_k,
-                      cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.k_force,
-                      me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out)
+        actuator_step(uc, h, self.time, *self._args)
         return self.out[0]
 
     def advance(self, uc, step):
@@ -187,7 +197,11 @@ class Actuator:
             self._adv_n = self.substeps(step)
         n = self._adv_n
         if n == 1:
-            self.step(uc, step)
+            if step != self._h:
+                self.prepare(step)
+            t = self.time + step
+            self.time = t
+            actuator_step(uc, step, t, *self._args)
         else:
             h = step / n
             for _ in range(n):
@@ -224,7 +238,7 @@ class Actuator:
 
     def get_state(self):
         """Complete state as plain Python data (JSON-serialisable)."""
-        return {"time": self.time, "ua": self.amp_s[0], "z": list(self.pi_z),
+        return {"time": self.time, "ua": self.amp_s[0], "z": pi_save(self.pi_r, self.pi_z),
                 "creep": list(self.creep.xs), "mech": list(self.mech.xs),
                 "dly": list(self.dly), "dly_buf": list(self.dly_buf), "out": list(self.out),
                 "h": self._h}
@@ -232,13 +246,14 @@ class Actuator:
     def set_state(self, s):
         self.time = float(s["time"])
         self.amp_s[0] = float(s["ua"])
-        self.pi_z[:] = [float(v) for v in s["z"]]
+        pi_load(self.pi_r, self.pi_w, self.pi_z, s["z"])
         self.creep.xs[:] = [float(v) for v in s["creep"]]
         self.mech.xs[:] = [float(v) for v in s["mech"]]
         if s["h"] is not None:
             self.prepare(float(s["h"]))
         self.dly[:] = [float(v) for v in s["dly"]]
         self.dly_buf = [float(v) for v in s["dly_buf"]]
+        self._bind()
         self.out[:] = [float(v) for v in s["out"]]
 
     # -- analysis helpers --------------------------------------------------------------------
@@ -271,9 +286,9 @@ def sensor_step(force, h, sen, sen_s, noise):
     """Quartz sensor output [V] at the end of a step whose force moved linearly to ``force`` [N].
 
     ``sen`` = [S_q [V/N], leak_decay = exp(-h/tau_leak) (0 < .. <= 1), tau_leak/h, offset [V]];
-    ``sen_s`` = [w, F_prev] where ``us = S_q F + w`` and ``w`` is the leaked part
-    (``tau dw/dt = -(w + S_q F)``, solved exactly for the linear force ramp).
-    ``noise`` is the additive noise sample [V] for this output.
+    ``sen_s`` = [w, F_prev, us] where ``us = S_q F + w`` (+ offset and noise) and ``w`` is the
+    leaked part (``tau dw/dt = -(w + S_q F)``, solved exactly for the linear force ramp); ``us``
+    is the last output. ``noise`` is the additive noise sample [V] for this output.
     """
     sq = sen[0]
     a = sen[1]
@@ -285,7 +300,9 @@ def sensor_step(force, h, sen, sen_s, noise):
         w = a * sen_s[0] - sq * ((1.0 - a) * f0 + (force - f0) * (1.0 - (1.0 - a) * r))
         sen_s[0] = w
     sen_s[1] = force
-    return sq * force + sen_s[0] + sen[3] + noise
+    us = sq * force + sen_s[0] + sen[3] + noise
+    sen_s[2] = us
+    return us
 
 
 class Sensor:
@@ -309,10 +326,14 @@ class Sensor:
         self.C_s = EPS0 * self.eps_r * self.area / self.thickness
         self.sensitivity = self.d11 / (self.C_s + self.C_load)       # [V/N]
         self.sen = [self.sensitivity, 1.0, 0.0, self.offset]
-        self.sen_s = [0.0, 0.0]
+        self.sen_s = [0.0, 0.0, self.offset]
         self.noise = NoiseSource(self.noise_std, self.seed)
-        self.us = self.offset
         self._h = None
+
+    @property
+    def us(self):
+        """The last output [V]."""
+        return self.sen_s[2]
 
     def prepare(self, h):
         if same_step(h, self._h):
@@ -326,14 +347,13 @@ class Sensor:
         """Advance ``h`` [s] with the force moving linearly to ``force`` [N]; returns us [V]."""
         if h != self._h:
             self.prepare(h)
-        self.us = sensor_step(force, h, self.sen, self.sen_s, self.noise.next())
-        return self.us
+        return sensor_step(force, h, self.sen, self.sen_s, self.noise.next())
 
     def reset(self, force=0.0):
         self.sen_s[0] = 0.0
         self.sen_s[1] = float(force)
         self.noise.reset()
-        self.us = self.sensitivity * force + self.offset
+        self.sen_s[2] = self.sensitivity * force + self.offset
 
     def get_state(self):
         return {"w": self.sen_s[0], "F": self.sen_s[1], "us": self.us, "noise": self.noise.get_state(),
@@ -341,7 +361,7 @@ class Sensor:
 
     def set_state(self, s):
         self.sen_s[0], self.sen_s[1] = float(s["w"]), float(s["F"])
-        self.us = float(s["us"])
+        self.sen_s[2] = float(s["us"])
         self.noise.set_state(s["noise"])
         if s["h"] is not None:
             self.prepare(float(s["h"]))
