@@ -47,7 +47,7 @@ H = 1e-4
 ROOT = Path(__file__).resolve().parent.parent
 
 SIZES = {  # steps per co-simulation run, repetitions, monolithic seconds, PI samples, diagnose recording
-    "full": dict(steps=10000, reps=6, mono_s=10.0, mono_py_s=0.2, pi_n=200_000, diag=(20.0, 10_000.0)),
+    "full": dict(steps=5000, reps=10, mono_s=10.0, mono_py_s=0.2, pi_n=200_000, diag=(20.0, 10_000.0)),
     "tiny": dict(steps=300, reps=1, mono_s=0.02, mono_py_s=0.01, pi_n=2_000, diag=(0.6, 2_000.0)),
 }
 
