@@ -69,13 +69,15 @@ def run_demo(args) -> int:
     gs = cosimulate(system, sig, STOP, STEP)
     jac = cosimulate(system, sig, STOP, STEP, algorithm="jacobi")
     mono = simulate(model, sig, STOP, record_step=STEP)
+    # the same loop with the compensator sampled at H, as in the co-simulation (actuator at 1e-5 s)
+    sampled = simulate(model, sig, STOP, record_step=STEP, control_step=STEP)
 
     say("4/4 comparing")
     t = gs["time"]
     stroke = float(np.ptp(mono["x_ref"]))
 
-    def diff(a):
-        d = np.interp(mono["time"], a["time"], a["x"]) - mono["x"]
+    def diff(a, ref=mono):
+        d = np.interp(ref["time"], a["time"], a["x"]) - ref["x"]
         return {"max_um": float(np.max(np.abs(d))), "max_percent_of_stroke": 100 * float(np.max(np.abs(d))) / stroke,
                 "rms_um": float(np.sqrt(np.mean(d * d)))}
 
@@ -88,6 +90,7 @@ def run_demo(args) -> int:
         "experiment": "paper 10 Hz closed loop: 0-90 V reference, dynamic inverse + PID",
         "step_s": STEP, "stop_time_s": STOP, "stroke_um": stroke,
         "cosim_vs_monolithic": {"gauss-seidel": diff(gs), "jacobi": diff(jac)},
+        "cosim_vs_monolithic_sampled_at_step": {"gauss-seidel": diff(gs, sampled)},
         "tracking_error": {"monolithic": tracking(mono), "gauss-seidel": tracking(gs), "jacobi": tracking(jac)},
         "cosim_us_per_step": {"gauss-seidel": gs.info["us_per_step"], "jacobi": jac.info["us_per_step"]},
         "files": {"fmus": {k: str(v) for k, v in fmus.items()}, "reproduction": str(out / "reproduction")},
@@ -106,6 +109,9 @@ def run_demo(args) -> int:
           f"({c['gauss-seidel']['max_percent_of_stroke']:.2f} % of the {stroke:.2f} um stroke)\n"
           f"  Jacobi:       max |dx| {c['jacobi']['max_um'] * 1e3:.2f} nm "
           f"({c['jacobi']['max_percent_of_stroke']:.2f} %)\n"
+          f"  Gauss-Seidel vs the monolithic model with the compensator sampled at H (the same loop, "
+          f"actuator at 1e-5 s): max |dx| "
+          f"{summary['cosim_vs_monolithic_sampled_at_step']['gauss-seidel']['max_um'] * 1e3:.2f} nm\n"
           f"  tracking error rms: monolithic {summary['tracking_error']['monolithic']['rms_um'] * 1e3:.2f} nm, "
           f"co-simulation {summary['tracking_error']['gauss-seidel']['rms_um'] * 1e3:.2f} nm\n"
           f"  {gs.info['us_per_step']:.1f} us per communication step")
