@@ -82,11 +82,7 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     x_h = pi_k[1] * pi_step(ua * pi_k[0], pi_r, pi_w, pi_z)
     if pi_k[2] != 0.0:
         x_h = x_h / (1.0 + abs(x_h) * pi_k[2])
-    if len(cr_tmp):
-        x_free = lti_advance(cr_phi, cr_g, cr_cd, cr_xs, x_h, cr_tmp)
-    else:                    # no creep element: lti_advance's order-0 path, without the call
-        cr_xs[0] = x_h
-        x_free = cr_cd[0] * x_h
+    x_free = lti_advance(cr_phi, cr_g, cr_cd, cr_xs, x_h, cr_tmp)
     force = k_force * x_free
     x = lti_advance(me_phi, me_g, me_cd, me_xs, force, me_tmp)
     nd2 = len(drift)
@@ -197,11 +193,7 @@ class Actuator:
             self._adv_n = self.substeps(step)
         n = self._adv_n
         if n == 1:
-            if step != self._h:
-                self.prepare(step)
-            t = self.time + step
-            self.time = t
-            actuator_step(uc, step, t, *self._args)
+            self.step(uc, step)
         else:
             h = step / n
             for _ in range(n):
