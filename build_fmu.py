@@ -210,10 +210,12 @@ def stage(name: str, payload: dict, stage_root: Path) -> dict:
     module = f"{name}_{hashlib.sha256((new_text + pkg).encode()).hexdigest()[:10]}"
     staged = sdir / f"{module}.py"
     staged.write_text(new_text, encoding="utf-8")
-    # everything bundled may import only the standard library, numpy, pythonfmu and the bundle
+    # everything bundled may import only the standard library, numpy, pythonfmu and the bundle;
+    # core/compiled.py also numba, imported only when the compiled engine is selected
     allowed = set(sys.stdlib_module_names) | {"numpy", "pythonfmu", pkg}
+    optional = {sdir / pkg / "core" / "compiled.py": {"numba"}}
     for f in [staged, *sorted((sdir / pkg).rglob("*.py"))]:
-        bad = imported_top_levels(f.read_text(encoding="utf-8"), str(f)) - allowed
+        bad = imported_top_levels(f.read_text(encoding="utf-8"), str(f)) - allowed - optional.get(f, set())
         if bad:
             raise StageError(f"{f.relative_to(sdir)}: imports {sorted(bad)}, which the FMU does not "
                              "bundle (allowed: standard library, numpy, pythonfmu, the bundle)")

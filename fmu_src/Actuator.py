@@ -7,6 +7,7 @@ rest at the start time (``unit.reset(t0)``). All physics is in the core.
 from slavebase import SlaveBase as Fmi2Slave
 
 from piezo_fmu.core import units
+from piezo_fmu.core.compiled import ENGINES
 
 
 class Actuator(Fmi2Slave):
@@ -32,6 +33,7 @@ class Actuator(Fmi2Slave):
         self.add_output("F", "N", "force of the stack on the push rod (F_out)")
         self.add_output("ua", "V", "amplifier output (stack) voltage")
         self.add_model_parameters(self.PARAMETERS, self.TUNABLE)
+        self.add_engine_parameter(ENGINES)
 
     def make_unit(self, sections):
         return units.actuator_from(sections)
@@ -40,17 +42,17 @@ class Actuator(Fmi2Slave):
         u = self.unit
         u.reset(t0)
         o = u.out
-        self.x = o[0]
-        self.F = o[1]
-        self.ua = o[2]
+        self.x = float(o[0])
+        self.F = float(o[1])
+        self.ua = float(o[2])
 
     def step(self, t, h):
         u = self.unit
         u.advance(self.uc, h)
-        o = u.out
-        x = o[0]
-        F = o[1]
-        ua = o[2]
+        o = u.out                   # a list, or a NumPy view under the compiled engine
+        x = float(o[0])
+        F = float(o[1])
+        ua = float(o[2])
         if (x - x) + (F - F) + (ua - ua) != 0.0:      # NaN or inf somewhere
             return False
         self.x = x
@@ -60,4 +62,4 @@ class Actuator(Fmi2Slave):
 
     def describe_outputs(self):
         o = self.unit.out
-        return f"x={o[0]!r}, F={o[1]!r}, ua={o[2]!r} for input uc={self.uc!r}"
+        return f"x={float(o[0])!r}, F={float(o[1])!r}, ua={float(o[2])!r} for input uc={self.uc!r}"

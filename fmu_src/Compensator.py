@@ -10,6 +10,7 @@ exit_initialization_mode computes the initial command from the inputs at the sta
 from slavebase import SlaveBase as Fmi2Slave
 
 from piezo_fmu.core import units
+from piezo_fmu.core.compiled import ENGINES
 from piezo_fmu.core.control import INVERSES, MODES, SIGNALS
 
 
@@ -52,6 +53,7 @@ class Compensator(Fmi2Slave):
                            tunable=True, check="nonneg")
         self.add_parameter("reference.phase", r["phase"], "deg",
                            "phase of the sine or triangle (-90: starts at its minimum)", tunable=True)
+        self.add_engine_parameter(ENGINES)
 
     def make_unit(self, sections):
         r = sections["reference"]
@@ -62,12 +64,12 @@ class Compensator(Fmi2Slave):
         u = self.unit
         u.reset()
         self.uc = u.initialize(t0, self.x_ref, self.us)
-        self.x_target = u.out[1]
+        self.x_target = float(u.out[1])
 
     def step(self, t, h):
         u = self.unit
         uc = u.step(t + h, self.x_ref, self.us, h)
-        xt = u.out[1]
+        xt = float(u.out[1])            # a list, or a NumPy view under the compiled engine
         if (uc - uc) + (xt - xt) != 0.0:
             return False
         self.uc = uc
@@ -76,4 +78,4 @@ class Compensator(Fmi2Slave):
 
     def describe_outputs(self):
         o = self.unit.out
-        return f"uc={o[0]!r}, x_target={o[1]!r} for inputs x_ref={self.x_ref!r}, us={self.us!r}"
+        return f"uc={float(o[0])!r}, x_target={float(o[1])!r} for inputs x_ref={self.x_ref!r}, us={self.us!r}"

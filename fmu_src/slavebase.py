@@ -399,6 +399,18 @@ class SlaveBase(Fmi2Slave):
                 else:
                     raise ValueError(f"{name}: unsupported schema kind {kind!r}")
 
+    def add_engine_parameter(self, engines):
+        """``simulation.engine``: run the unit's kernel interpreted (``python``, NumPy only) or
+        compiled by numba (``numba``: the unit's ``compile()``); ``engines`` maps the labels to
+        their Integer codes (``piezo_fmu.core.compiled.ENGINES``). A fixed parameter; the results
+        are the same bit for bit."""
+        codes = ", ".join(f"{c} {n}" for n, c in engines.items())
+        self.add_parameter("simulation.engine", engines["python"], None,
+                           f"kernel engine: {codes} (compiled: numba must be installed in the host's "
+                           "Python; the first instance in a process compiles for a few seconds; "
+                           "identical results, less time per step)", tunable=False, integer=True,
+                           lo=min(engines.values()), hi=max(engines.values()), codes=engines)
+
     def model_sections(self):
         """The parameters as a model ``sections`` dict (lists for list keys, labels for coded ints)."""
         d = self.__dict__
@@ -723,6 +735,8 @@ class SlaveBase(Fmi2Slave):
                 return f"{self._changed_since_build(key)}: " + "; ".join(problems)
         try:
             unit = self.make_unit(sections)
+            if sections.get("simulation", {}).get("engine") == "numba":
+                unit.compile()
         except Exception as e:  # noqa: BLE001 - the core says why
             return f"{self._changed_since_build(key)}: {e}"
         if transfer and self.unit is not None:

@@ -4,15 +4,22 @@
    (pythonfmu, the same slave base) in a ring, stepped by the co-simulation master's own
    Gauss-Seidel loop at H = 1e-4 s: the cost of the FMI machinery alone.
 2. ``cosim_us_per_step``: the closed loop of the three real FMUs through the same loop
-   (the paper's 10 Hz experiment, H = 1e-4 s); ``cosim_to_floor`` (target <= 1.5) and
-   ``cosim_realtime_factor`` = simulated / wall time (target >= 3).
+   (the paper's 10 Hz experiment, H = 1e-4 s), with the Actuator and Compensator FMUs' kernels
+   compiled (``simulation.engine = numba``, when numba is installed; ``cosim_engine`` says which);
+   ``cosim_to_floor`` (target <= 1.5) and ``cosim_realtime_factor`` = simulated / wall time
+   (target >= 3). The same with the interpreted kernels (the FMUs' default, NumPy only):
+   ``cosim_python_*``. Wall time of the stepping loop (``cosimulate``'s ``us_per_step``; loading
+   and initialising the FMUs excluded).
 3. ``monolithic_samples_per_s``: the monolithic model of the same closed loop, the actuator
    integrated at an internal step of 1e-5 s and the sensor and compensator sampled at H = 1e-4 s
-   as in the co-simulation (``simulate(control_step=H)``), end to end including the model build
-   (numba engine; the interpreted engine as ``monolithic_python_samples_per_s``), and
-   ``monolithic_speedup_vs_cosim`` in wall time per simulated second (target >= 100). Also the
-   single-rate model, the compensator acting every 1e-5 s (``monolithic_single_rate_*``): ten
-   times the controller work of the co-simulated loop.
+   as in the co-simulation (``simulate(control_step=H)``), numba engine (the interpreted one as
+   ``monolithic_python_samples_per_s``); like the co-simulation figure, the wall time of the
+   stepping loop (``SimResult.samples_per_s``); ``monolithic_end_to_end_samples_per_s`` includes
+   building the model and the recording table. ``monolithic_speedup_vs_cosim``: wall time per
+   simulated second, loop against loop (target >= 100); ``monolithic_end_to_end_speedup_vs_cosim``
+   the same with the monolithic model end to end. Also the single-rate model, the compensator
+   acting every 1e-5 s (``monolithic_single_rate_*``): ten times the controller work of the
+   co-simulated loop.
 4. ``pi_ns_per_sample_operator``: the PI step kernel (compiled), forward and inverse (mean of the
    two; each also reported), plus the interpreted kernel and the vectorised scan. The step kernel
    is O(1) per sample away from reversals (see ``core.hysteresis.pi_step``), so the figure per
@@ -67,10 +74,10 @@ def _best(fn, reps):
     return min(fn() for _ in range(reps))
 
 
-def _floor_and_cosim_us(passthrough, fmus, steps, reps):
-    """``(floor, cosim)`` in us per step: the best of ``reps`` runs of each, taken in turns
-    (floor, co-simulation, floor, ...) so that both see the same machine; the ratio of two
-    measurements taken minutes apart would carry the machine's drift."""
+def _floor_and_cosim_us(passthrough, fmus, steps, reps, engines):
+    """``(floor, {engine: cosim})`` in us per step: the best of ``reps`` runs of each, taken in
+    turns (floor, co-simulation with each engine, floor, ...) so that all see the same machine;
+    the ratio of two measurements taken minutes apart would carry the machine's drift."""
     from . import cosim
     from .simulate import Signal
 
@@ -95,13 +102,15 @@ def _floor_and_cosim_us(passthrough, fmus, steps, reps):
             done[0] += steps
             return (time.perf_counter() - t0) / steps * 1e6
 
-        def system():
+        def system(engine):
             res = cosim.cosimulate(fmus, Signal("sine", 45.0, 45.0, 10.0), steps * H, H,
-                                   record_step=rec_every * H)
+                                   record_step=rec_every * H, engine=engine)
             return res.info["us_per_step"]
 
-        runs = [(floor(), system()) for _ in range(reps)]
-    return min(f for f, _ in runs), min(c for _, c in runs)
+        for e in engines:       # compile (the numba engine: once per process) outside the timing
+            cosim.cosimulate(fmus, Signal("sine", 45.0, 45.0, 10.0), 10 * H, H, engine=e)
+        runs = [(floor(), {e: system(e) for e in engines}) for _ in range(reps)]
+    return min(f for f, _ in runs), {e: min(c[e] for _, c in runs) for e in engines}
 
 
 def _monolithic(model, seconds, engine, reps, control_step):
@@ -114,9 +123,10 @@ def _monolithic(model, seconds, engine, reps, control_step):
         t0 = time.perf_counter()
         res = simulate(model, sig, seconds, step=1e-5, record_step=H, control_step=control_step,
                        engine=engine)
-        return res.n_steps / (time.perf_counter() - t0)
+        return res.samples_per_s, res.n_steps / (time.perf_counter() - t0)
 
-    return max(once() for _ in range(reps))
+    runs = [once() for _ in range(reps)]
+    return max(r[0] for r in runs), max(r[1] for r in runs)
 
 
 def _pi_figures(model, n, reps):
@@ -226,27 +236,38 @@ def run_bench(size="full", model=None, say=None) -> dict:
     with tempfile.TemporaryDirectory(prefix="piezo-fmu-bench-") as tmp:
         say("building the FMUs and the pass-through floor FMU")
         fmus = load_builder().build_all(model_path, tmp, floor=True, ssp=False, log=lambda *a, **k: None)
-        say(f"FMI floor (3 pass-through instances) and co-simulation (3 FMUs), in turns: "
-            f"{cfg['steps']} steps x {cfg['reps']} each")
-        system = {n: fmus[n] for n in ("Actuator", "Sensor", "Compensator")}
-        out["floor_us_per_step"], out["cosim_us_per_step"] = _floor_and_cosim_us(
-            fmus["PassThrough"], system, cfg["steps"], cfg["reps"])
-        out["cosim_to_floor"] = out["cosim_us_per_step"] / out["floor_us_per_step"]
-        out["cosim_realtime_factor"] = H / (out["cosim_us_per_step"] * 1e-6)
         from .simulate import numba_available
 
-        say("monolithic model at 1e-5 s")
         engine = "numba" if numba_available() else "python"
+        engines = (engine, "python") if engine != "python" else ("python",)
+        say(f"FMI floor (3 pass-through instances) and co-simulation (3 FMUs; engine "
+            f"{' and '.join(engines)}), in turns: {cfg['steps']} steps x {cfg['reps']} each")
+        system = {n: fmus[n] for n in ("Actuator", "Sensor", "Compensator")}
+        out["floor_us_per_step"], per_engine = _floor_and_cosim_us(
+            fmus["PassThrough"], system, cfg["steps"], cfg["reps"], engines)
+        out["cosim_engine"] = engine
+        for key, e in (("", engine), ("_python", "python")):
+            out[f"cosim{key}_us_per_step"] = per_engine[e]
+            out[f"cosim{key}_to_floor"] = per_engine[e] / out["floor_us_per_step"]
+            out[f"cosim{key}_realtime_factor"] = H / (per_engine[e] * 1e-6)
+
+        say("monolithic model at 1e-5 s")
         out["monolithic_engine"] = engine
         out["monolithic_control_step_s"] = H
-        out["monolithic_samples_per_s"] = _monolithic(m, cfg["mono_s"], engine, cfg["reps"], H)
-        out["monolithic_single_rate_samples_per_s"] = _monolithic(m, cfg["mono_s"] / 5, engine,
-                                                                  cfg["reps"], None)
-        out["monolithic_python_samples_per_s"] = _monolithic(m, cfg["mono_py_s"], "python", cfg["reps"], H)
+        for key, seconds, eng, control in (("", cfg["mono_s"], engine, H),
+                                           ("_single_rate", cfg["mono_s"] / 5, engine, None),
+                                           ("_python", cfg["mono_py_s"], "python", H)):
+            out[f"monolithic{key}_samples_per_s"], out[f"monolithic{key}_end_to_end_samples_per_s"] = (
+                _monolithic(m, seconds, eng, cfg["reps"], control))
         cosim_wall_per_s = out["cosim_us_per_step"] * 1e-6 / H
+        out["monolithic_end_to_end_speedup_vs_cosim"] = (
+            cosim_wall_per_s * out["monolithic_end_to_end_samples_per_s"] * 1e-5)
         for key in ("", "_single_rate", "_python"):
             mono_wall_per_s = 1.0 / (out[f"monolithic{key}_samples_per_s"] * 1e-5)
             out[f"monolithic{key}_speedup_vs_cosim"] = cosim_wall_per_s / mono_wall_per_s
+        # the interpreted model against the interpreted FMUs (NumPy only on both sides)
+        out["monolithic_python_speedup_vs_cosim_python"] = (
+            out["cosim_python_us_per_step"] * 1e-6 / H * out["monolithic_python_samples_per_s"] * 1e-5)
         say("PI operator throughput")
         out.update(_pi_figures(m, cfg["pi_n"], cfg["reps"]))
         seconds, fs = cfg["diag"]
@@ -261,12 +282,20 @@ def run_bench(size="full", model=None, say=None) -> dict:
 
 def format_figures(r) -> str:
     rows = [("FMI floor (3 pass-through FMUs)", f"{r['floor_us_per_step']:.1f} us/step"),
-            ("co-simulation (3 FMUs, H = 1e-4 s)", f"{r['cosim_us_per_step']:.1f} us/step"),
+            (f"co-simulation (3 FMUs, H = 1e-4 s, {r['cosim_engine']})", f"{r['cosim_us_per_step']:.1f} us/step"),
             ("co-simulation / floor", f"{r['cosim_to_floor']:.2f} (target <= 1.5)"),
             ("co-simulation real-time factor", f"{r['cosim_realtime_factor']:.2f} (target >= 3)"),
+            ("co-simulation, interpreted FMUs", f"{r['cosim_python_us_per_step']:.1f} us/step, "
+                                                f"{r['cosim_python_to_floor']:.2f} x floor, real time "
+                                                f"x{r['cosim_python_realtime_factor']:.2f}"),
             (f"monolithic, 1e-5 s, control 1e-4 s ({r['monolithic_engine']})",
              f"{r['monolithic_samples_per_s']:.3g} samples/s (target >= 1e6)"),
-            ("monolithic, interpreted", f"{r['monolithic_python_samples_per_s']:.3g} samples/s"),
+            ("monolithic, end to end (incl. model build)",
+             f"{r['monolithic_end_to_end_samples_per_s']:.3g} samples/s, "
+             f"x{r['monolithic_end_to_end_speedup_vs_cosim']:.0f} vs co-simulation"),
+            ("monolithic, interpreted", f"{r['monolithic_python_samples_per_s']:.3g} samples/s, "
+                                        f"x{r['monolithic_python_speedup_vs_cosim_python']:.2f} vs "
+                                        "the interpreted FMUs"),
             ("monolithic speed-up vs co-simulation", f"x{r['monolithic_speedup_vs_cosim']:.0f} (target >= 100)"),
             ("monolithic, single rate (control 1e-5 s)",
              f"{r['monolithic_single_rate_samples_per_s']:.3g} samples/s, "

@@ -57,6 +57,7 @@ import numpy as np
 
 from . import fmilog
 from .connections import COMPONENTS, CONNECTIONS, EXTERNAL_INPUTS, ORDER, RECORDED
+from .core.compiled import ENGINES
 from .core.control import INVERSES, MODES, SIGNALS
 from .errors import UserError
 from .simulate import COLUMNS, UNITS, Signal, SimResult
@@ -86,6 +87,8 @@ SECTION_OWNER = {
     "compensator": "Compensator", "compensator.hysteresis": "Compensator",
     "compensator.dynamics": "Compensator",
 }
+# The FMUs whose kernels can run compiled (their simulation.engine parameter).
+ENGINE_FMUS = ("Actuator", "Compensator")
 # Model-file values that are strings and the Integer parameters that encode them.
 ENUM_PARAMETERS = {"compensator.mode": MODES, "compensator.inverse": INVERSES}
 
@@ -461,7 +464,7 @@ def _compensator_constant(model, slave, key):
 
 def cosimulate(fmus, signal: Signal, stop_time: float, step: float = 1e-4, algorithm="gauss-seidel",
                mode=None, inverse=None, model=None, record_step=None, sink=None, progress=None,
-               t0: float = 0.0, initial="consistent", chunk: int = CHUNK) -> SimResult:
+               t0: float = 0.0, initial="consistent", chunk: int = CHUNK, engine=None) -> SimResult:
     """Co-simulate the three FMUs at a fixed communication step.
 
     Parameters
@@ -495,6 +498,11 @@ def cosimulate(fmus, signal: Signal, stop_time: float, step: float = 1e-4, algor
         ``consistent`` (default) propagates the initial outputs in Gauss-Seidel order (as
         libcosim's initialisation does); ``zero`` starts every coupling from 0.0 and ignores
         the FMUs' initial outputs, as ``fmpy.ssp.simulate_ssp`` does (for comparisons).
+    engine : {None, "python", "numba"}
+        Kernel engine of the Actuator and Compensator FMUs (their ``simulation.engine``):
+        ``numba`` runs the same kernels compiled (same results bit for bit, ~1/5 of the physics'
+        time per step; compiling takes a few seconds once per process); ``None`` keeps the FMUs'
+        setting (as built: ``python``).
 
     Returns a :class:`~piezo_fmu.simulate.SimResult` with the columns of ``simulate``;
     ``info["us_per_step"]`` is the wall time per communication step [us].
@@ -516,6 +524,8 @@ def cosimulate(fmus, signal: Signal, stop_time: float, step: float = 1e-4, algor
         raise UserError(f"--mode: unknown {mode!r} ({', '.join(MODES)})")
     if inverse is not None and inverse not in INVERSES:
         raise UserError(f"--inverse: unknown {inverse!r} ({', '.join(INVERSES)})")
+    if engine is not None and engine not in ENGINES:
+        raise UserError(f"--engine: unknown {engine!r} ({', '.join(ENGINES)})")
     paths = fmu_paths(fmus)
     t_end = t0 + n_total * H
     w_start = time.perf_counter()
@@ -531,6 +541,9 @@ def cosimulate(fmus, signal: Signal, stop_time: float, step: float = 1e-4, algor
         if cinv is not None:
             values["Compensator"]["compensator.inverse"] = INVERSES[cinv]
         values["Compensator"].update(_reference_values(signal))
+        if engine is not None:
+            for name in ENGINE_FMUS:
+                values[name]["simulation.engine"] = ENGINES[engine]
         use_ext = signal.kind == "table"
         if use_ext:
             k_ideal = _compensator_constant(model, comp, "k_ideal")
@@ -811,7 +824,7 @@ def run_cli(args):
     fmus = fmu_paths(args.fmu_dir)
     bar = Progress("cosim", args.quiet)
     kw = {"step": args.step, "algorithm": args.algorithm, "mode": args.mode, "inverse": args.inverse,
-          "model": model, "record_step": args.record_step, "progress": bar}
+          "model": model, "record_step": args.record_step, "progress": bar, "engine": args.engine}
 
     def run(sink=None):
         return cosimulate(fmus, signal, args.stop_time, sink=sink, **kw)

@@ -23,13 +23,12 @@ from __future__ import annotations
 
 import math
 import time
-import types
 from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
 
-from .core import control, hysteresis, linear, plant
+from .core import compiled
 from .core.control import compensator_step
 from .core.plant import actuator_step, sensor_step
 from .errors import UserError
@@ -175,52 +174,17 @@ def closed_loop(n, h, t0, k0, rec_every, ctrl_every, xref, use_ext, noise,
 
 # -- the compiled engine ------------------------------------------------------------------------
 
-_KERNEL_ORDER = (
-    (hysteresis, "pi_tail"), (hysteresis, "pi_step"), (plant, "amp_step"), (linear, "lti_advance"),
-    (control, "reference_value"), (control, "pid_step"),
-    (plant, "actuator_step"), (plant, "sensor_step"), (control, "compensator_step"),
-)
-
-
 def numba_available() -> bool:
-    try:
-        import numba  # noqa: F401
-    except Exception:
-        return False
-    return True
+    return compiled.available()
 
 
 @lru_cache(maxsize=1)
 def compiled_kernels():
-    """numba-compiled versions of the kernels and of :func:`closed_loop` (compiled once per process).
-
-    Each kernel is cloned with its global names re-bound to the compiled callees, then compiled;
-    the source is the same function the interpreted engine and the FMUs run. Options (measured on
-    the paper's 10 Hz closed loop at 1e-5 s): the kernels are inlined into the loop at numba-IR
-    level, and numba's reference counting is switched off (``_nrt=False``: nothing here allocates
-    arrays; counting the ~40 array arguments cost 2/3 of the time), and divisions use the NumPy
-    error model (no zero-divisor branches; validated parameters never divide by zero): 271 -> 92 ns
-    per step, results still bit-identical to the interpreted engine.
-    """
-    import numba
-
-    def jit(func, inline):
-        opts = {"cache": False, "nogil": True, "error_model": "numpy"}
-        if inline:
-            opts["inline"] = "always"
-        try:
-            return numba.njit(_nrt=False, **opts)(func)
-        except TypeError:       # a numba without the _nrt option: reference counting stays on
-            return numba.njit(**opts)(func)
-
-    compiled = {}
-    for module, name in _KERNEL_ORDER + ((None, "closed_loop"),):
-        func = closed_loop if module is None else getattr(module, name)
-        env = dict(func.__globals__)
-        env.update(compiled)
-        clone = types.FunctionType(func.__code__, env, name, func.__defaults__, func.__closure__)
-        compiled[name] = jit(clone, inline=module is not None)
-    return compiled
+    """The compiled kernels of :func:`piezo_fmu.core.compiled.kernels` plus :func:`closed_loop`,
+    compiled the same way (its kernel calls re-bound to the compiled, inlined kernels)."""
+    k = dict(compiled.kernels())
+    k["closed_loop"] = compiled.compile_function(closed_loop, k)
+    return k
 
 
 # -- running ------------------------------------------------------------------------------------
@@ -361,14 +325,16 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
                np.empty((1, 7)))
         compile_s = time.perf_counter() - w0
 
-    keep = [] if sink is None else None
     first = np.array([[t0, comp.out[1], act.x, sen.us, comp.uc, act.ua, act.F]])
-    if keep is not None:
-        keep.append(first)
-    else:
-        sink(first)
     period = rec_every * ctrl_every // math.gcd(rec_every, ctrl_every)
     chunk = max(period, (chunk // period) * period)
+    # kept in memory: one table, each chunk recorded straight into its rows (no copies)
+    table = np.empty((1 + n_total // rec_every + 1, 7)) if sink is None else None
+    if table is not None:
+        table[0] = first[0]
+    else:
+        sink(first)
+    row = 1
     done = 0
     wall = 0.0
     last = first
@@ -377,22 +343,25 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
         xref = (signal.x_ref_at(t0 + h * np.arange(done, done + n + 1), k_ideal, k_amp) if use_ext
                 else np.zeros(1))
         noise_arr = sen.noise.take(n // ctrl_every)
-        rec = np.empty((n // rec_every + 1, 7))
+        rec = table[row:row + n // rec_every + 1] if table is not None else np.empty((n // rec_every + 1, 7))
         # the recording phase continues across chunks because chunks are multiples of rec_every
         w0 = time.perf_counter()
         rows = runner(n, h, t0, done, rec_every, ctrl_every, xref, use_ext, noise_arr, *a, *s, *c, rec)
         wall += time.perf_counter() - w0
         done += n
         last = rec[:rows]
-        if keep is not None:
-            keep.append(last)
+        if table is not None:
+            row += rows
         else:
             sink(last)
         if progress is not None:
             progress(done / n_total)
     if engine == "numba":
         _write_back(act, sen, comp, a, s, c)
-    table = np.vstack(keep) if keep is not None else last
+    if table is not None:
+        table = table[:row]
+    else:
+        table = last
     data = {name: table[:, i] for i, name in enumerate(COLUMNS)}
     info = {"mode": cmode, "inverse": cinv, "signal": signal.describe(), "units": dict(UNITS),
             "control_step": h * ctrl_every, "compile_s": compile_s}

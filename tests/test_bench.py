@@ -19,8 +19,17 @@ def test_bench_tiny_writes_every_key(tmp_path, capsys):
     # co-simulation, as it once did in CI)
     for key in ("monolithic_python_samples_per_s", "pi_forward_interpreted_ns_per_sample_operator",
                 "pi_inverse_ns_per_sample_operator", "monolithic_single_rate_samples_per_s",
-                "monolithic_single_rate_speedup_vs_cosim", "pi_forward_ns_per_sample"):
+                "monolithic_single_rate_speedup_vs_cosim", "pi_forward_ns_per_sample",
+                "cosim_python_us_per_step", "cosim_python_to_floor", "cosim_python_realtime_factor",
+                "monolithic_end_to_end_samples_per_s", "monolithic_end_to_end_speedup_vs_cosim",
+                "monolithic_python_speedup_vs_cosim_python"):
         assert math.isfinite(r[key]) and r[key] > 0, key
+    assert r["cosim_engine"] in ("numba", "python")
+    assert math.isclose(r["cosim_python_to_floor"], r["cosim_python_us_per_step"] / r["floor_us_per_step"])
+    # the speed-up is wall time per simulated second: co-simulation loop (H = 1e-4 s) against the
+    # monolithic loop (1e-5 s steps)
+    assert math.isclose(r["monolithic_speedup_vs_cosim"],
+                        r["cosim_us_per_step"] * 1e-6 / 1e-4 * r["monolithic_samples_per_s"] * 1e-5)
     assert r["monolithic_control_step_s"] == 1e-4     # the controller sampled as in the co-simulation
     assert r["diagnose_recording"]["channels"] == ["x", "us"]
     assert r["machine"]["cores"] >= 1

@@ -30,7 +30,7 @@ from fmpy.validation import validate_fmu
 
 from piezo_fmu import fmilog
 from piezo_fmu.connections import COMPONENTS
-from piezo_fmu.core import units
+from piezo_fmu.core import compiled, units
 from piezo_fmu.model import SCHEMA, load_model
 
 HERE = Path(__file__).resolve().parent
@@ -240,6 +240,11 @@ def test_interface_matches_connections_and_model(built_fmus):
                 "reference.signal": "1", "reference.amplitude": "45.0", "reference.offset": "45.0",
                 "reference.freq": "10.0", "reference.phase": "-90.0"}
             assert ref["reference.phase"].unit == "deg" and ref["reference.amplitude"].unit == "V"
+        if name in ("Actuator", "Compensator"):           # the kernel engine, python by default
+            eng = var["simulation.engine"]
+            assert (eng.type, eng.start, eng.variability) == ("Integer", "0", "fixed")
+            assert "0 python, 1 numba" in eng.description
+            params.add("simulation.engine")
         assert params == {v.name for v in md.modelVariables if v.causality == "parameter"}
 
 
@@ -265,7 +270,8 @@ def test_variabilities_are_the_documented_choice(fmus):
     fixed = {n for f in fmus.values() for n, v in f.var.items() if v.variability == "fixed"}
     assert {"amplifier.delay", "hysteresis.thresholds[2]", "hysteresis.u_norm", "mechanics.m",
             "resonance.f_n", "sensor.d11", "sensor.seed", "compensator.mode", "compensator.inverse",
-            "compensator.filter_hz", "compensator.hysteresis.weights[1]", "compensator.dynamics.den[1]"} <= fixed
+            "compensator.filter_hz", "compensator.hysteresis.weights[1]", "compensator.dynamics.den[1]",
+            "simulation.engine"} <= fixed
 
 
 # ---------------------------------------------------------------------------------------------
@@ -461,7 +467,7 @@ def test_all_fmus_side_by_side_several_instances(fmus):
     assert alone["act1"] != alone["act2"] != alone["act3"] and alone["sen1"] != alone["sen2"]
     assert alone["com1"] != alone["com2"]
     bundles = sorted(m for m in sys.modules if m.startswith("_pz_") and m.count(".") == 0)
-    assert len([b for b in bundles if b.startswith(("_pz_actuator_", "_pz_sensor_", "_pz_compensator_"))]) == 3
+    assert len([b for b in bundles if b.startswith(("_pz_actuator_", "_pz_sensor_", "_pz_compensator_"))]) == 3, bundles
     for s in live.values():
         s.free()
 
@@ -477,6 +483,8 @@ def sections_with(values):
     sections = json.loads(json.dumps(MODEL.sections, allow_nan=True))
     ref = dict(REFERENCE_DEFAULT)
     for name, v in values.items():
+        if name == "simulation.engine":       # how the unit runs, not what it computes
+            continue
         v = LABELS.get(name, {}).get(v, v)
         base, _, idx = name.partition("[")
         sec, key = base.rsplit(".", 1)
@@ -532,6 +540,42 @@ def test_fmu_equals_core_unit(fmus, name):
     hs = [1e-4] * 200 + [3.7e-4] * 100 + [2.5e-5] * 100     # step size changes re-discretise
     got, want = fmu_and_core(fmus[name], {}, hs)
     assert got == want
+
+
+@pytest.mark.skipif(not compiled.available(), reason="numba is not installed")
+@pytest.mark.parametrize("name", ("Actuator", "Compensator"))
+def test_compiled_engine_equals_the_interpreted_core_unit_and_saves_its_state(fmus, name):
+    """simulation.engine = 1 (numba): the FMU still equals the interpreted core unit to the last
+    bit (step-size changes included), and its state (the packed buffer's hysteresis memory,
+    filters, PID) saves, serializes and restores bit for bit, also into a fresh instance."""
+    hs = [1e-4] * 200 + [3.7e-4] * 100 + [2.5e-5] * 100
+    got, want = fmu_and_core(fmus[name], {"simulation.engine": 1}, hs)
+    assert got == want
+    f = fmus[name]
+    s = f.slave("compiled", values={"simulation.engine": 1})
+    assert s.get("simulation.engine") == [1]
+    drive(s, 300)
+    t = s.t
+    st = s.s.getFMUstate()
+    a = drive(s, 200, k0=300)
+    blob = s.s.serializeFMUstate(st)
+    fresh = f.slave("fresh", init=False)
+    st2 = fresh.s.deSerializeFMUstate(blob)
+    restore(fresh, st2, t)
+    assert fresh.get("simulation.engine") == [1]
+    assert drive(fresh, 200, k0=300) == a
+    restore(s, st, t)
+    assert drive(s, 200, k0=300) == a
+    other = f.slave("other")                       # the interpreted engine from the start
+    drive(other, 300)
+    assert drive(other, 200, k0=300) == a
+    # a fixed parameter: refused once initialized
+    status, msgs = call(s.s.setInteger, [f.var["simulation.engine"].valueReference], [0])
+    assert status != 0 and any("simulation.engine" in m[3] for m in msgs)
+    for x, y in ((s, st), (fresh, st2)):
+        x.s.freeFMUstate(y)
+    for x in (s, fresh, other):
+        x.free()
 
 
 def test_parameters_set_before_initialization_take_effect(fmus):

@@ -4,4 +4,6 @@
 * :mod:`.linear` - exact discretisation of linear blocks, matrix exponential
 * :mod:`.plant` - amplifier, hysteretic stack, mechanics (the actuator) and the quartz sensor
 * :mod:`.control` - reference generator, inverse feedforward, PID, the compensator
+* :mod:`.compiled` - the same kernels compiled by numba (optional), and the packed runners the
+  units use after ``compile()``
 """

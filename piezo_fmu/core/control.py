@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 
 from .hysteresis import PrandtlIshlinskii, pi_load, pi_save, pi_state, pi_step, pi_table
-from .linear import LinearSystem, lti_advance, same_step
+from .linear import LinearSystem, as_floats, lti_advance, same_step
 
 __all__ = ["MODES", "INVERSES", "SIGNALS", "reference_value", "pid_step", "compensator_step",
            "Compensator", "inverse_filter_tf"]
@@ -201,10 +201,32 @@ class Compensator:
         self.pid_s = [0.0, 0.0, 0.0, 0.0]
         self.out = [0.0, 0.0, 0.0, 0.0]
         self._h = None
+        self._run = None            # the compiled runner (after compile()), else None
+        self._bind()
+
+    def _bind(self):
+        """The kernel's arguments after ``(t, x_ref, us, h)``, bound once (every list is updated
+        in place); under the compiled engine the data are first packed into one buffer (views)."""
         g = self.ginv
-        # the kernel's arguments after (t, x_ref, us, h), bound once (every list is updated in place)
+        if self._run is not None:
+            from .compiled import pack
+            buf, o, v = pack([self.cfg, self.ref, self.gains, self.pid_s, self.inv_r, self.inv_w,
+                              self.inv_z, self.inv_k, g.phi, g.g, g.cd, g.xs, g.tmp, self.out])
+            (self.cfg, self.ref, self.gains, self.pid_s, self.inv_r, self.inv_w, self.inv_z,
+             self.inv_k, g.phi, g.g, g.cd, g.xs, g.tmp, self.out) = v
+            self._packed = (buf, o)
         self._args = (self.cfg, self.ref, self.gains, self.pid_s, self.inv_r, self.inv_w, self.inv_z,
                       self.inv_k, g.phi, g.g, g.cd, g.xs, g.tmp, self.out)
+
+    def compile(self):
+        """Switch to the compiled engine (numba, :mod:`.compiled`): same kernel, same results bit
+        for bit, ~0.5 us per call instead of ~2.5 us. The first use in a process compiles (a few
+        seconds). Returns ``self``."""
+        from .compiled import kernels, warm
+        self._run = kernels()["compensator_run"]
+        self._bind()
+        warm(self._run, 0.0, 0.0, 0.0, 1.0, *self._packed)
+        return self
 
     @property
     def uc(self):
@@ -223,6 +245,8 @@ class Compensator:
 
     def initialize(self, t, x_ref_in, us):
         """Initial command from the inputs at the start time ``t`` (no integration)."""
+        if self._run is not None:
+            return self._run(t, x_ref_in, us, 0.0, *self._packed)
         compensator_step(t, x_ref_in, us, 0.0, *self._args)
         return self.out[0]
 
@@ -230,6 +254,8 @@ class Compensator:
         """Command for the next interval from inputs sampled at ``t`` [s], after a step ``h`` [s]."""
         if h != self._h:
             self.prepare(h)
+        if self._run is not None:
+            return self._run(t, x_ref_in, us, h, *self._packed)
         compensator_step(t, x_ref_in, us, h, *self._args)
         return self.out[0]
 
@@ -242,8 +268,9 @@ class Compensator:
         self.out[:] = [0.0, 0.0, 0.0, 0.0]
 
     def get_state(self):
-        return {"inv_z": pi_save(self.inv_r, self.inv_z), "ginv": list(self.ginv.xs), "pid": list(self.pid_s),
-                "sat": self.cfg[8], "out": list(self.out), "h": self._h}
+        return {"inv_z": as_floats(pi_save(self.inv_r, self.inv_z)), "ginv": as_floats(self.ginv.xs),
+                "pid": as_floats(self.pid_s), "sat": float(self.cfg[8]), "out": as_floats(self.out),
+                "h": self._h}
 
     def set_state(self, s):
         pi_load(self.inv_r, self.inv_w, self.inv_z, s["inv_z"])

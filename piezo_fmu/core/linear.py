@@ -17,9 +17,14 @@ import math
 
 import numpy as np
 
-__all__ = ["expm", "tf2ss", "discretize", "is_hurwitz", "LinearSystem", "lti_advance", "same_step"]
+__all__ = ["expm", "tf2ss", "discretize", "is_hurwitz", "LinearSystem", "lti_advance", "same_step", "as_floats"]
 
 STEP_RTOL = 1e-9
+
+
+def as_floats(seq):
+    """Plain Python floats: unit data are lists, or NumPy views under the compiled engine."""
+    return [float(v) for v in seq]
 
 
 def same_step(h, cached):

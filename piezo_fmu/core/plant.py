@@ -20,7 +20,8 @@ Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made 
   ``us = q / (C_s + C_load)``; with a finite leakage time constant the charge decays
   (a first-order high-pass); plus offset and white measurement noise.
 
-All units keep explicit state with ``get_state``/``set_state``. Everything needs only NumPy.
+All units keep explicit state with ``get_state``/``set_state``. Everything needs only NumPy; the
+optional compiled engine (``Actuator.compile()``, :mod:`.compiled`) needs numba.
 """
 from __future__ import annotations
 
@@ -29,7 +30,7 @@ import math
 import numpy as np
 
 from .hysteresis import PrandtlIshlinskii, pi_load, pi_save, pi_state, pi_step, pi_table
-from .linear import LinearSystem, lti_advance, same_step
+from .linear import LinearSystem, as_floats, lti_advance, same_step
 
 EPS0 = 8.8541878128e-12  # vacuum permittivity [F/m]
 
@@ -147,15 +148,36 @@ class Actuator:
         self._adv_step = None
         self._adv_n = 1
         self.time = 0.0
+        self._run = None            # the compiled runner (after compile()), else None
         self._bind()
 
     def _bind(self):
         """The kernel's arguments after ``(uc, h, t_end)``, bound once (one attribute lookup per
-        step instead of twenty); rebuilt whenever a list is replaced rather than updated in place."""
+        step instead of twenty); rebuilt whenever a list is replaced rather than updated in place.
+        Under the compiled engine the data are first re-packed into one buffer (views)."""
         cr, me = self.creep, self.mech
+        if self._run is not None:
+            from .compiled import pack
+            buf, o, v = pack([self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w,
+                              self.pi_z, self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, [self.k_force],
+                              me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out])
+            (self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w, self.pi_z,
+             self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, _, me.phi, me.g, me.cd, me.xs, me.tmp,
+             self.drift, self.out) = v
+            self._packed = (buf, o)
         self._args = (self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w, self.pi_z,
                       self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.k_force,
                       me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out)
+
+    def compile(self):
+        """Switch to the compiled engine (numba, :mod:`.compiled`): same kernel, same results bit
+        for bit, ~0.5 us per call instead of ~2.5 us, and a communication step's sub-steps in one
+        call. The first use in a process compiles (a few seconds). Returns ``self``."""
+        from .compiled import kernels, warm
+        self._run = kernels()["actuator_run"]
+        self._bind()
+        warm(self._run, 0.0, 1.0, 0, self.time, *self._packed)
+        return self
 
     # -- configuration ---------------------------------------------------------------------
     def prepare(self, h):
@@ -182,8 +204,11 @@ class Actuator:
         """One internal step of ``h`` [s] with the command ``uc`` [V] held; returns ``x`` [um]."""
         if h != self._h:
             self.prepare(h)
-        self.time += h
-        actuator_step(uc, h, self.time, *self._args)
+        if self._run is not None:
+            self.time = self._run(uc, h, 1, self.time, *self._packed)
+        else:
+            self.time += h
+            actuator_step(uc, h, self.time, *self._args)
         return self.out[0]
 
     def advance(self, uc, step):
@@ -194,6 +219,11 @@ class Actuator:
         n = self._adv_n
         if n == 1:
             self.step(uc, step)
+        elif self._run is not None:          # all sub-steps in one compiled call
+            h = step / n
+            if h != self._h:
+                self.prepare(h)
+            self.time = self._run(uc, h, n, self.time, *self._packed)
         else:
             h = step / n
             for _ in range(n):
@@ -230,9 +260,9 @@ class Actuator:
 
     def get_state(self):
         """Complete state as plain Python data (JSON-serialisable)."""
-        return {"time": self.time, "ua": self.amp_s[0], "z": pi_save(self.pi_r, self.pi_z),
-                "creep": list(self.creep.xs), "mech": list(self.mech.xs),
-                "dly": list(self.dly), "dly_buf": list(self.dly_buf), "out": list(self.out),
+        return {"time": self.time, "ua": float(self.amp_s[0]), "z": as_floats(pi_save(self.pi_r, self.pi_z)),
+                "creep": as_floats(self.creep.xs), "mech": as_floats(self.mech.xs),
+                "dly": as_floats(self.dly), "dly_buf": as_floats(self.dly_buf), "out": as_floats(self.out),
                 "h": self._h}
 
     def set_state(self, s):

@@ -1,0 +1,143 @@
+"""The units' compiled engine (``Actuator.compile()``, ``Compensator.compile()``): the same kernels
+run by numba on the unit's data packed into one buffer must give the interpreted results bit for
+bit, through every branch the FMUs reach (delay line resized, creep of order 0-3, extra resonance,
+drift, current limit, saturation, sub-steps, every compensator mode and inverse), and the state
+must move between the engines unchanged."""
+import copy
+import math
+
+import numpy as np
+import pytest
+
+from piezo_fmu.core import compiled
+from piezo_fmu.core.control import INVERSES, MODES
+from piezo_fmu.core.plant import Actuator
+from piezo_fmu.model import load_model
+from piezo_fmu.system import make_actuator, make_compensator
+
+pytestmark = pytest.mark.skipif(not compiled.available(), reason="numba is not installed")
+
+MODEL = load_model()
+
+
+def _actuator(**changes):
+    m = MODEL.copy()
+    for key, value in changes.items():
+        sec, _, k = key.rpartition(".")
+        m.sections.setdefault(sec, {})[k] = value
+    return make_actuator(m)
+
+
+ACTUATORS = {
+    "paper": {},
+    "everything": {"amplifier.delay": 3e-4, "amplifier.I_max": 2e-3, "creep.gains": [0.02, 0.01, 0.005],
+                   "creep.time_constants": [0.01, 0.1, 1.0], "resonance.f_n": 3000.0,
+                   "resonance.zeta": 0.1, "drift.offset": 0.01, "drift.rate": 0.2,
+                   "drift.curvature": -0.05, "simulation.actuator_max_step": 2.5e-5},
+    "one creep element": {"creep.gains": [0.03], "creep.time_constants": [0.05]},
+}
+
+
+def _command(k):
+    """A command with turns at every scale: slow sine, fast ripple, jumps, rail excursions [V]."""
+    return 4.5 + 4.4 * math.sin(k / 40) + 0.3 * math.sin(k * 1.7) + (6.0 if k % 97 == 0 else 0.0)
+
+
+def _drive(act, steps, k0=0, step=1e-4):
+    return [(act.advance(_command(k), step), float(act.F), float(act.ua)) for k in range(k0, k0 + steps)]
+
+
+@pytest.mark.parametrize("name", sorted(ACTUATORS))
+def test_compiled_actuator_equals_interpreted_bit_for_bit(name):
+    py = _actuator(**ACTUATORS[name])
+    nb = _actuator(**ACTUATORS[name]).compile()
+    assert isinstance(nb.pi_z, np.ndarray) and isinstance(py.pi_z, list)
+    a = _drive(py, 600)
+    b = _drive(nb, 600)
+    assert a == b
+    assert py.get_state() == nb.get_state()
+    assert all(type(v) is float for v in nb.get_state()["z"])        # plain data, JSON-ready
+    # a different communication step: re-discretised, the delay line resized (for "everything")
+    assert _drive(py, 300, 600, step=1.1e-4) == _drive(nb, 300, 600, step=1.1e-4)
+    assert py.get_state() == nb.get_state()
+
+
+def test_actuator_state_moves_between_engines():
+    py = _actuator(**ACTUATORS["everything"])
+    _drive(py, 400)
+    saved = copy.deepcopy(py.get_state())
+    ref = _drive(py, 300, 400)
+    nb = _actuator(**ACTUATORS["everything"]).compile()
+    nb.set_state(copy.deepcopy(saved))               # interpreted -> compiled
+    assert _drive(nb, 300, 400) == ref
+    back = _actuator(**ACTUATORS["everything"])
+    nb.set_state(copy.deepcopy(saved))
+    _drive(nb, 150, 400)
+    back.set_state(copy.deepcopy(nb.get_state()))    # compiled -> interpreted, mid-run
+    assert _drive(back, 150, 550) == ref[150:]
+    # a state from elsewhere must change the result (the comparison above can fail)
+    nb.set_state(copy.deepcopy(saved))
+    nb.set_state(copy.deepcopy(_actuator(**ACTUATORS["everything"]).get_state()))
+    assert _drive(nb, 300, 400) != ref
+
+
+def test_compiled_actuator_works_on_its_own_buffer():
+    """The unit's lists become views of one buffer; replacing the delay line re-packs it."""
+    act = _actuator(**ACTUATORS["everything"]).compile()
+    buf, offsets = act._packed
+    assert np.shares_memory(act.pi_z, buf) and np.shares_memory(act.mech.xs, buf)
+    assert np.shares_memory(act.out, buf) and offsets[-1] == buf.size
+    act.advance(1.0, 1e-4)
+    old = act._packed[0]
+    n = act.dly_buf.size
+    act.advance(1.0, 1.1e-4)                     # another internal step: the delay line is resized
+    assert act.dly_buf.size != n
+    assert act._packed[0] is not old and np.shares_memory(act.dly_buf, act._packed[0])
+
+
+@pytest.mark.parametrize("mode", sorted(MODES))
+@pytest.mark.parametrize("inverse", sorted(INVERSES))
+def test_compiled_compensator_equals_interpreted_bit_for_bit(mode, inverse):
+    def make():
+        return make_compensator(MODEL, mode=mode, inverse=inverse, signal="sine", amplitude=45.0,
+                                offset=45.0, freq=20.0)
+
+    py, nb = make(), make().compile()
+    rng = np.random.default_rng(3)
+    us = (0.4 + 0.35 * np.sin(np.arange(800) / 30) + 0.01 * rng.standard_normal(800)).tolist()
+    h = 1e-4
+    a = [py.initialize(0.0, 0.0, us[0])] + [py.step(k * h, 0.0, us[k], h) for k in range(1, 800)]
+    b = [nb.initialize(0.0, 0.0, us[0])] + [nb.step(k * h, 0.0, us[k], h) for k in range(1, 800)]
+    assert a == b
+    assert all(type(v) is float for v in b)
+    assert py.get_state() == nb.get_state()
+    saved = copy.deepcopy(py.get_state())
+    ref = [py.step(k * h, 0.0, us[k - 400], h) for k in range(800, 900)]
+    nb2 = make().compile()
+    nb2.set_state(copy.deepcopy(saved))
+    assert [nb2.step(k * h, 0.0, us[k - 400], h) for k in range(800, 900)] == ref
+
+
+def test_pack_lays_regions_back_to_back():
+    buf, offsets, views = compiled.pack([[1.0, 2.0], [], [3.0], np.array([4.0, 5.0, 6.0])])
+    assert buf.tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+    assert offsets.tolist() == [0, 2, 2, 3, 6] and offsets.dtype == np.int64
+    views[2][0] = 9.0
+    assert buf[2] == 9.0 and [v.size for v in views] == [2, 0, 1, 3]
+
+
+def test_regions_follow_the_kernels_signatures():
+    """The runners slice the kernels' arguments in the order of the region tables."""
+    import inspect
+
+    from piezo_fmu.core.control import compensator_step
+    from piezo_fmu.core.plant import actuator_step
+
+    assert list(inspect.signature(actuator_step).parameters)[3:] == list(compiled.ACTUATOR_REGIONS)
+    assert list(inspect.signature(compensator_step).parameters)[4:] == list(compiled.COMPENSATOR_REGIONS)
+
+
+def test_without_numba_the_error_says_what_to_install(monkeypatch):
+    monkeypatch.setattr(compiled, "available", lambda: False)
+    with pytest.raises(RuntimeError, match="pip install numba"):
+        Actuator.compile(_actuator())
