@@ -9,8 +9,8 @@ FMUs and the interpreted engine need only NumPy; :func:`available` tells whether
   (measured on the paper's 10 Hz closed loop at 1e-5 s): callees inlined at numba-IR level;
   reference counting off (``_nrt=False``: nothing allocates arrays, and counting the ~40 array
   arguments cost 2/3 of the time); divisions with the NumPy error model (no zero-divisor
-  branches; validated parameters never divide by zero). Results are bit-identical to the
-  interpreted engine (tested).
+  branches; validated parameters never divide by zero): 271 -> 92 ns per step of the
+  single-rate loop when introduced. Results are bit-identical to the interpreted engine (tested).
 * A compiled function called from Python pays numba's dispatch for every argument (~70 ns per
   array: 1.4-2 us for the kernels' 14-21 arrays, as much as the interpreted kernel costs). The
   runners take instead ONE float64 buffer holding a unit's data back to back and the offsets of
