@@ -7,7 +7,7 @@ rest at the start time (``unit.reset(t0)``). All physics is in the core.
 from slavebase import SlaveBase as Fmi2Slave
 
 from piezo_fmu.core import units
-from piezo_fmu.core.compiled import ENGINES
+from piezo_fmu.core.compiled import ENGINES, compile_unit
 
 
 class Actuator(Fmi2Slave):
@@ -16,6 +16,7 @@ class Actuator(Fmi2Slave):
                    "force F and stack voltage ua (after Shan et al., Sensors 2021)")
     # standalone run: with the start value uc = 3 V, the amplifier's 30 V step response
     DEFAULT_EXPERIMENT = {"startTime": 0.0, "stopTime": 0.02, "stepSize": 1e-4}
+    COMPILE = staticmethod(compile_unit)     # simulation.engine = numba
     PARAMETERS = {"amplifier": None, "hysteresis": None, "creep": None, "mechanics": None,
                   "resonance": None, "drift": None, "simulation": ("actuator_max_step",)}
     # tunable: values that no state variable depends on; a change rebuilds the unit (new

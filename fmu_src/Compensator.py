@@ -10,7 +10,7 @@ exit_initialization_mode computes the initial command from the inputs at the sta
 from slavebase import SlaveBase as Fmi2Slave
 
 from piezo_fmu.core import units
-from piezo_fmu.core.compiled import ENGINES
+from piezo_fmu.core.compiled import ENGINES, compile_unit
 from piezo_fmu.core.control import INVERSES, MODES, SIGNALS
 
 
@@ -21,6 +21,7 @@ class Compensator(Fmi2Slave):
                    "(after Shan et al., Sensors 2021)")
     # standalone run: one period of the built-in 10 Hz reference (no plant: the PID winds up)
     DEFAULT_EXPERIMENT = {"startTime": 0.0, "stopTime": 0.1, "stepSize": 1e-4}
+    COMPILE = staticmethod(compile_unit)     # simulation.engine = numba
     PARAMETERS = {"compensator": None, "compensator.hysteresis": None, "compensator.dynamics": None}
     CODES = {"compensator.mode": MODES, "compensator.inverse": INVERSES}
     # tunable: gains, calibration, limits and the reference (no state depends on them; a change

@@ -1,6 +1,6 @@
 """Shared base class of the piezo-fmu co-simulation slaves (FMI 2.0 CS through pythonfmu 0.7.0).
 
-``build_fmu.py`` bundles this module into every FMU together with a copy of :mod:`piezo_fmu.core`,
+``piezo-fmu build`` (:mod:`piezo_fmu.builder`) bundles this module into every FMU together with a copy of :mod:`piezo_fmu.core`,
 under a package name that is unique per FMU and content-hashed, and rewrites the imports. A slave
 script therefore imports it by its plain name and keeps the literal class line the pythonfmu
 wrapper searches for (regex ``^class (\\w+)\\(\\s*Fmi2Slave\\s*\\)\\s*:``)::
@@ -54,7 +54,7 @@ from pythonfmu.enums import Fmi2Status  # not re-exported by pythonfmu 0.7.0
 
 __all__ = ["MODEL_JSON", "FmuUsageError", "SlaveBase", "state_dumps", "state_loads"]
 
-MODEL_JSON = "piezo_model.json"     # written into resources/ by build_fmu.py
+MODEL_JSON = "piezo_model.json"     # written into resources/ by piezo_fmu.builder
 STATE_FORMAT = 1
 
 INSTANTIATED = "instantiated"
@@ -240,6 +240,7 @@ class SlaveBase(Fmi2Slave):
     CHECK = None                     # f(sections) -> list of problems naming the keys (the core's check)
     STATE_ATTRS = ()                 # further instance attributes that belong to the FMU state
     NEEDS_MODEL = True               # the slave builds a unit from the bundled model
+    COMPILE = None                   # f(unit): switch a unit to the compiled engine (core.compiled.compile_unit)
 
     # -- construction ------------------------------------------------------------------------
     def __init__(self, **kwargs):
@@ -281,7 +282,7 @@ class SlaveBase(Fmi2Slave):
         if path is None or not os.path.exists(path):
             if self.NEEDS_MODEL:
                 raise FmuUsageError(f"{type(self).__name__}: model file {MODEL_JSON} not found in "
-                                    f"the resources folder {resources!r} (rebuild with build_fmu.py)")
+                                    f"the resources folder {resources!r} (rebuild with piezo-fmu build)")
             return {}
         with open(path, encoding="utf-8") as f:
             return json.load(f)
@@ -401,7 +402,7 @@ class SlaveBase(Fmi2Slave):
 
     def add_engine_parameter(self, engines):
         """``simulation.engine``: run the unit's kernel interpreted (``python``, NumPy only) or
-        compiled by numba (``numba``: the unit's ``compile()``); ``engines`` maps the labels to
+        compiled by numba (``numba``: the slave's ``COMPILE(unit)``); ``engines`` maps the labels to
         their Integer codes (``piezo_fmu.core.compiled.ENGINES``). A fixed parameter; the results
         are the same bit for bit."""
         codes = ", ".join(f"{c} {n}" for n, c in engines.items())
@@ -736,7 +737,7 @@ class SlaveBase(Fmi2Slave):
         try:
             unit = self.make_unit(sections)
             if sections.get("simulation", {}).get("engine") == "numba":
-                unit.compile()
+                self.COMPILE(unit)
         except Exception as e:  # noqa: BLE001 - the core says why
             return f"{self._changed_since_build(key)}: {e}"
         if transfer and self.unit is not None:
@@ -835,7 +836,7 @@ class SlaveBase(Fmi2Slave):
 
     # -- metadata for the build ---------------------------------------------------------------
     def fmu_meta(self):
-        """Everything build_fmu.py needs to post-process the modelDescription."""
+        """Everything piezo_fmu.builder needs to post-process the modelDescription."""
         variables = {}
         for v in self._vars.values():
             start = None

@@ -32,7 +32,6 @@ Every figure is the best of a few repetitions (the machine's other load only slo
 from __future__ import annotations
 
 import ctypes
-import importlib.util
 import json
 import math
 import os
@@ -43,31 +42,19 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import UserError
+from .builder import build_all
 
-__all__ = ["run_bench", "register", "KEYS", "load_builder"]
+__all__ = ["run_bench", "register", "KEYS"]
 
 KEYS = ("floor_us_per_step", "cosim_us_per_step", "cosim_to_floor", "cosim_realtime_factor",
         "monolithic_samples_per_s", "monolithic_speedup_vs_cosim", "pi_ns_per_sample_operator",
         "diagnose_s")
 H = 1e-4
-ROOT = Path(__file__).resolve().parent.parent
 
 SIZES = {  # steps per co-simulation run, repetitions, monolithic seconds, PI samples, diagnose recording
     "full": dict(steps=5000, reps=10, mono_s=10.0, mono_py_s=0.2, pi_n=200_000, diag=(20.0, 10_000.0)),
     "tiny": dict(steps=300, reps=1, mono_s=0.02, mono_py_s=0.01, pi_n=2_000, diag=(0.6, 2_000.0)),
 }
-
-
-def load_builder():
-    """The ``build_fmu`` module of this source tree (a top-level script beside the package)."""
-    path = ROOT / "build_fmu.py"
-    if not path.exists():
-        raise UserError(f"{path}: not found; the benchmark builds FMUs from the source tree")
-    spec = importlib.util.spec_from_file_location("piezo_fmu_build_fmu", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _best(fn, reps):
@@ -240,7 +227,7 @@ def run_bench(size="full", model=None, say=None) -> dict:
     out = {"size": size, "machine": _machine(), "step_s": H}
     with tempfile.TemporaryDirectory(prefix="piezo-fmu-bench-") as tmp:
         say("building the FMUs and the pass-through floor FMU")
-        fmus = load_builder().build_all(model_path, tmp, floor=True, ssp=False, log=lambda *a, **k: None)
+        fmus = build_all(model_path, tmp, floor=True, ssp=False, log=lambda *a, **k: None)
         from .simulate import numba_available
 
         engine = "numba" if numba_available() else "python"

@@ -336,6 +336,17 @@ def cmd_validate(args):
     return status
 
 
+def cmd_build(args):
+    from .builder import BuildError, build_all
+
+    log = (lambda msg: None) if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    try:
+        build_all(args.model, args.out_dir, floor=args.floor, log=log)
+    except BuildError as exc:
+        raise UserError(str(exc)) from None
+    return 0
+
+
 def cmd_demo(args):
     from .demo import run_demo
 
@@ -386,6 +397,18 @@ def build_parser():
     s.add_argument("--force", action="store_true")
     s.add_argument("--quiet", action="store_true")
     s.set_defaults(func=cmd_identify)
+
+    s = sub.add_parser("build", help="build the FMUs and the SSP from a model file",
+                       description="Build Actuator.fmu, Sensor.fmu, Compensator.fmu (FMI 2.0 co-simulation, "
+                                   "authored with pythonfmu) and PiezoSystem.ssp from a model file; every FMU "
+                                   "is validated and run once before it reaches the output folder.")
+    s.add_argument("--model", metavar="FILE.toml", default=None, help="model file (default: the paper's)")
+    s.add_argument("--out-dir", metavar="DIR", default="models",
+                   help="where the FMUs and the SSP go (default: ./models, created)")
+    s.add_argument("--floor", action="store_true",
+                   help="also build PassThrough.fmu (y = u on the same base: the benchmark's floor)")
+    s.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    s.set_defaults(func=cmd_build)
 
     s = sub.add_parser("validate", help="check model files (.toml) or FMUs (.fmu)",
                        description="Validate model parameter files and FMUs; exit status 2 if any "

@@ -73,9 +73,9 @@ __all__ = [
     "run_component",
 ]
 
-DEFAULT_FMU_DIR = Path(__file__).resolve().parent.parent / "models"
+DEFAULT_FMU_DIR = Path("models")      # relative to the current folder, where `piezo-fmu build` puts them
 ALGORITHMS = ("gauss-seidel", "jacobi")
-BUILD_HINT = "run python build_fmu.py first"
+BUILD_HINT = "build them first: piezo-fmu build --out-dir DIR"
 STATUS = ("ok", "warning", "discard", "error", "fatal", "pending")
 
 # Which FMU carries the parameters of a model section (used when an FMU has no variable of a
@@ -415,7 +415,7 @@ def model_start_values(model, slaves) -> dict:
                     raise UserError(
                         f"{name}: the model has {len(value)} values but {slaves[owner].path.name} "
                         f"was built with {have} (list lengths are fixed when an FMU is built); "
-                        f"rebuild the FMUs from this model: python build_fmu.py --model "
+                        f"rebuild the FMUs from this model: piezo-fmu build --model "
                         f"{model.path or 'FILE.toml'} --out-dir {slaves[owner].path.parent}")
                 for i, v in enumerate(value, 1):
                     out[owner][f"{name}[{i}]"] = float(v)

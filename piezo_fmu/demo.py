@@ -35,8 +35,8 @@ def _write_run(path, res, force):
 
 
 def run_demo(args) -> int:
-    from .bench import load_builder
-    from .cosim import cosimulate
+    from .builder import build_all
+    from .cosim import DEFAULT_FMU_DIR, cosimulate
     from .model import DEFAULT_MODEL, load_model
     from .reproduce import format_table, run_reproduction
     from .simulate import Signal, simulate
@@ -59,9 +59,9 @@ def run_demo(args) -> int:
     print(format_table(repro))
 
     say("2/4 building Actuator.fmu, Sensor.fmu, Compensator.fmu and PiezoSystem.ssp")
-    models_dir = Path(args.fmu_dir) if getattr(args, "fmu_dir", None) else DEFAULT_MODEL.parent
+    models_dir = Path(args.fmu_dir) if getattr(args, "fmu_dir", None) else DEFAULT_FMU_DIR
     models_dir.mkdir(parents=True, exist_ok=True)
-    fmus = load_builder().build_all(DEFAULT_MODEL, models_dir, log=lambda *a, **k: None)
+    fmus = build_all(DEFAULT_MODEL, models_dir, log=lambda *a, **k: None)
 
     say(f"3/4 co-simulating the paper's 10 Hz closed loop at H = {STEP:g} s (fmpy), and the monolithic model")
     sig = Signal("sine", 45.0, 45.0, 10.0)

@@ -18,6 +18,7 @@ import copy
 import math
 import tomllib
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,8 @@ from .errors import UserError
 __all__ = ["Spec", "SCHEMA", "ModelError", "Model", "load_model", "loads_model", "validate_model",
            "dump_model", "DEFAULT_MODEL"]
 
-DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "models" / "paper.toml"
+# the model file of the paper, shipped inside the package (the repository's models/paper.toml)
+DEFAULT_MODEL = Path(str(files("piezo_fmu.model_files").joinpath("paper.toml")))
 
 UNIT_ALIASES = {"µm": "um", "μm": "um", "Ohm": "ohm", "Ω": "ohm", "-": "1", "": "1"}
 

@@ -55,7 +55,7 @@ __all__ = [
     "write_system_ssp",
 ]
 
-DEFAULT_SSP = Path(__file__).resolve().parent.parent / "models" / "PiezoSystem.ssp"
+DEFAULT_SSP = Path("models") / "PiezoSystem.ssp"     # relative to the current folder
 
 NS = {
     "ssd": "http://ssp-standard.org/SSP1/SystemStructureDescription",
@@ -177,7 +177,7 @@ def write_system_ssp(path, fmus: dict, *, start_time=0.0, stop_time=0.3, step=1e
         raise UserError(f"write_system_ssp: no FMU given for {', '.join(missing)}")
     for n in COMPONENTS:
         if not Path(fmus[n]).is_file():
-            raise UserError(f"{fmus[n]}: not found; run python build_fmu.py first")
+            raise UserError(f"{fmus[n]}: not found; build them first: piezo-fmu build --out-dir DIR")
     ssd = system_ssd(start_time=start_time, stop_time=stop_time, step=step,
                      experiment=experiment, parameters=parameters)
     with atomic_writer(path, "wb", force=force) as fh:

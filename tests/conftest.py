@@ -1,26 +1,23 @@
 """Shared fixtures: the FMUs, built once per test session from models/paper.toml."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:          # build_fmu.py lives at the top level of the repository
-    sys.path.insert(0, str(ROOT))
 
 SYSTEM_FMUS = ("Actuator", "Sensor", "Compensator")
 
 
 @pytest.fixture(scope="session")
 def fmu_build(tmp_path_factory):
-    """``build_fmu.build_all`` of models/paper.toml into a temp folder, with PassThrough.fmu.
+    """``piezo_fmu.builder.build_all`` of models/paper.toml into a temp folder, with PassThrough.fmu.
 
     The SSP is not written here (``ssp=False``) so that these tests do not depend on
     piezo_fmu.ssp; tests of the SSP call ``piezo_fmu.ssp.write_system_ssp`` with ``built_fmus``.
     """
-    from build_fmu import build_all
+    from piezo_fmu.builder import build_all
 
     out = tmp_path_factory.mktemp("fmus")
     return build_all(ROOT / "models" / "paper.toml", out, floor=True, ssp=False, log=lambda msg: None)

@@ -1,4 +1,4 @@
-"""The units' compiled engine (``Actuator.compile()``, ``Compensator.compile()``): the same kernels
+"""The units' compiled engine (``compiled.compile_unit``): the same kernels
 run by numba on the unit's data packed into one buffer must give the interpreted results bit for
 bit, through every branch the FMUs reach (delay line resized, creep of order 0-3, extra resonance,
 drift, current limit, saturation, sub-steps, every compensator mode and inverse), and the state
@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from piezo_fmu.core import compiled
+from piezo_fmu.core.buffers import pack
 from piezo_fmu.core.control import INVERSES, MODES
 from piezo_fmu.core.plant import Actuator
 from piezo_fmu.model import load_model
@@ -50,7 +51,7 @@ def _drive(act, steps, k0=0, step=1e-4):
 @pytest.mark.parametrize("name", sorted(ACTUATORS))
 def test_compiled_actuator_equals_interpreted_bit_for_bit(name):
     py = _actuator(**ACTUATORS[name])
-    nb = _actuator(**ACTUATORS[name]).compile()
+    nb = compiled.compile_unit(_actuator(**ACTUATORS[name]))
     assert isinstance(nb.pi_z, np.ndarray) and isinstance(py.pi_z, list)
     a = _drive(py, 600)
     b = _drive(nb, 600)
@@ -67,7 +68,7 @@ def test_actuator_state_moves_between_engines():
     _drive(py, 400)
     saved = copy.deepcopy(py.get_state())
     ref = _drive(py, 300, 400)
-    nb = _actuator(**ACTUATORS["everything"]).compile()
+    nb = compiled.compile_unit(_actuator(**ACTUATORS["everything"]))
     nb.set_state(copy.deepcopy(saved))               # interpreted -> compiled
     assert _drive(nb, 300, 400) == ref
     back = _actuator(**ACTUATORS["everything"])
@@ -83,16 +84,16 @@ def test_actuator_state_moves_between_engines():
 
 def test_compiled_actuator_works_on_its_own_buffer():
     """The unit's lists become views of one buffer; replacing the delay line re-packs it."""
-    act = _actuator(**ACTUATORS["everything"]).compile()
-    buf, offsets = act._packed
+    act = compiled.compile_unit(_actuator(**ACTUATORS["everything"]))
+    buf, offsets = act.packed
     assert np.shares_memory(act.pi_z, buf) and np.shares_memory(act.mech.xs, buf)
     assert np.shares_memory(act.out, buf) and offsets[-1] == buf.size
     act.advance(1.0, 1e-4)
-    old = act._packed[0]
+    old = act.packed[0]
     n = act.dly_buf.size
     act.advance(1.0, 1.1e-4)                     # another internal step: the delay line is resized
     assert act.dly_buf.size != n
-    assert act._packed[0] is not old and np.shares_memory(act.dly_buf, act._packed[0])
+    assert act.packed[0] is not old and np.shares_memory(act.dly_buf, act.packed[0])
 
 
 @pytest.mark.parametrize("mode", sorted(MODES))
@@ -102,7 +103,7 @@ def test_compiled_compensator_equals_interpreted_bit_for_bit(mode, inverse):
         return make_compensator(MODEL, mode=mode, inverse=inverse, signal="sine", amplitude=45.0,
                                 offset=45.0, freq=20.0)
 
-    py, nb = make(), make().compile()
+    py, nb = make(), compiled.compile_unit(make())
     rng = np.random.default_rng(3)
     us = (0.4 + 0.35 * np.sin(np.arange(800) / 30) + 0.01 * rng.standard_normal(800)).tolist()
     h = 1e-4
@@ -113,13 +114,13 @@ def test_compiled_compensator_equals_interpreted_bit_for_bit(mode, inverse):
     assert py.get_state() == nb.get_state()
     saved = copy.deepcopy(py.get_state())
     ref = [py.step(k * h, 0.0, us[k - 400], h) for k in range(800, 900)]
-    nb2 = make().compile()
+    nb2 = compiled.compile_unit(make())
     nb2.set_state(copy.deepcopy(saved))
     assert [nb2.step(k * h, 0.0, us[k - 400], h) for k in range(800, 900)] == ref
 
 
 def test_pack_lays_regions_back_to_back():
-    buf, offsets, views = compiled.pack([[1.0, 2.0], [], [3.0], np.array([4.0, 5.0, 6.0])])
+    buf, offsets, views = pack([[1.0, 2.0], [], [3.0], np.array([4.0, 5.0, 6.0])])
     assert buf.tolist() == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
     assert offsets.tolist() == [0, 2, 2, 3, 6] and offsets.dtype == np.int64
     views[2][0] = 9.0
@@ -140,4 +141,4 @@ def test_regions_follow_the_kernels_signatures():
 def test_without_numba_the_error_says_what_to_install(monkeypatch):
     monkeypatch.setattr(compiled, "available", lambda: False)
     with pytest.raises(RuntimeError, match="pip install numba"):
-        Actuator.compile(_actuator())
+        compiled.compile_unit(_actuator())

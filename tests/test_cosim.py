@@ -376,7 +376,7 @@ def test_list_parameters_that_do_not_match_the_fmus_are_refused(fmus, quiet):
     m = quiet.copy()
     m.sections["creep"]["gains"] = [0.05]
     m.sections["creep"]["time_constants"] = [0.1]
-    with pytest.raises(UserError, match=r"creep\.gains.*1 values.*built with 0.*build_fmu.py --model"):
+    with pytest.raises(UserError, match=r"creep\.gains.*1 values.*built with 0.*piezo-fmu build --model"):
         cosimulate(fmus, sine(10), 0.01, H, model=m)
     m = quiet.copy()
     m.sections["hysteresis"]["weights"] = m.sections["hysteresis"]["weights"][:-1]
@@ -402,9 +402,9 @@ def test_bad_arguments_are_user_errors(fmus, tmp_path):
         cosimulate(fmus, sine(10), -1.0)
     with pytest.raises(UserError, match="algorithm"):
         cosimulate(fmus, sine(10), 0.1, algorithm="newton")
-    with pytest.raises(UserError, match="build_fmu.py"):
+    with pytest.raises(UserError, match="piezo-fmu build"):
         cosimulate(tmp_path, sine(10), 0.1)
-    with pytest.raises(UserError, match="build_fmu.py"):
+    with pytest.raises(UserError, match="piezo-fmu build"):
         cosimulate(tmp_path / "nowhere", sine(10), 0.1)
     broken = tmp_path / "Actuator.fmu"
     broken.write_bytes(b"not a zip")
@@ -450,7 +450,7 @@ def test_cli_cosim_without_fmus_says_how_to_build_them(tmp_path, capsys):
         assert rc == 2
         lines = err.strip().splitlines()
         assert len(lines) == 1, err
-        assert lines[0].startswith("piezo-fmu cosim: error:") and "build_fmu.py" in lines[0]
+        assert lines[0].startswith("piezo-fmu cosim: error:") and "piezo-fmu build" in lines[0]
     assert not (tmp_path / "x.csv").exists()
 
 

@@ -303,11 +303,11 @@ def test_twenty_seconds_at_ten_kilohertz_names_both_mechanisms(tmp_path):
 def test_fmus_rebuilt_from_the_diagnosed_model_reproduce_the_recording(creep_run, tmp_path):
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
-    build_fmu = pytest.importorskip("build_fmu")
+    from piezo_fmu import builder
     cosim = pytest.importorskip("piezo_fmu.cosim")
     out = creep_run["dir"]
     fmus = tmp_path / "fmus"
-    build_fmu.build_all(out / "model.toml", fmus, ssp=False, log=lambda msg: None)
+    builder.build_all(out / "model.toml", fmus, ssp=False, log=lambda msg: None)
     fit = read_fit_csv(out / "fit.csv")
     t = fit["time"] - fit["time"][0]
     dt = float(t[1] - t[0])

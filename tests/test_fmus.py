@@ -1,4 +1,4 @@
-"""The three co-simulation FMUs (and the PassThrough floor) as built by build_fmu.py.
+"""The three co-simulation FMUs (and the PassThrough floor) as built by piezo_fmu.builder.
 
 Proves: fmpy validation; the interface contract of piezo_fmu.connections and the model's
 parameters; `fmpy simulate` from the defaults and with an input file; bit-exact get/set and
@@ -880,7 +880,7 @@ def test_fmus_run_without_the_project_package(built_fmus, passthrough_fmu):
     ("import slavebasex\nfrom .slavebase import b\n", "import slavebasex\nfrom .slavebase import b\n"),
 ])
 def test_rewrite_imports(src, expected):
-    from build_fmu import rewrite_imports
+    from piezo_fmu.builder import rewrite_imports
     assert rewrite_imports(src, "slavebase", "_b.slavebase") == expected
 
 
@@ -891,33 +891,33 @@ def test_rewrite_imports(src, expected):
     ("from piezo_fmu import model\n", "from piezo_fmu import model\n"),    # left alone: the stage check fails it
 ])
 def test_rewrite_core_imports(src, expected):
-    from build_fmu import rewrite_imports
+    from piezo_fmu.builder import rewrite_imports
     assert rewrite_imports(src, "piezo_fmu.core", "_b.core") == expected
 
 
 @pytest.mark.parametrize("src", ["import piezo_fmu.core\n", "import piezo_fmu.core.units\n",
                                  "import importlib\nm = importlib.import_module('piezo_fmu.core.units')\n"])
 def test_rewrite_imports_rejects_ambiguous(src):
-    from build_fmu import StageError, rewrite_imports
+    from piezo_fmu.builder import StageError, rewrite_imports
     with pytest.raises(StageError):
         rewrite_imports(src, "piezo_fmu.core", "_b.core")
 
 
 def test_stage_rejects_an_unbundled_import(tmp_path, monkeypatch):
-    import build_fmu
+    from piezo_fmu.builder import staging as build_stage
     src = tmp_path / "fmu_src"
     src.mkdir()
     (src / "Bad.py").write_text("from slavebase import SlaveBase as Fmi2Slave\nfrom piezo_fmu import model\n\n\n"
                                 "class Bad(Fmi2Slave):\n    pass\n")
-    monkeypatch.setattr(build_fmu, "FMU_SRC", src)
-    with pytest.raises(build_fmu.StageError, match="piezo_fmu"):
-        build_fmu.stage("Bad", {}, tmp_path / "stage")
+    monkeypatch.setattr(build_stage, "FMU_SRC", src)
+    with pytest.raises(build_stage.StageError, match="piezo_fmu"):
+        build_stage.stage("Bad", {}, tmp_path / "stage")
 
 
 def test_zip_rewrite_replaces_one_member_or_nothing(tmp_path, monkeypatch):
     import zipfile
 
-    from build_fmu import rewrite_zip_member
+    from piezo_fmu.builder import rewrite_zip_member
     p = tmp_path / "X.fmu"
     with zipfile.ZipFile(p, "w") as z:
         z.writestr("modelDescription.xml", b"<old/>")

@@ -120,7 +120,7 @@ def test_write_is_atomic_and_checked(fmus, tmp_path, monkeypatch):
     before = target.read_bytes()
     with pytest.raises(UserError, match="exists"):
         write_system_ssp(target, fmus, force=False)
-    with pytest.raises(UserError, match="build_fmu.py"):
+    with pytest.raises(UserError, match="piezo-fmu build"):
         write_system_ssp(target, {**fmus, "Sensor": tmp_path / "nope.fmu"})
     with pytest.raises(UserError, match="Compensator"):
         write_system_ssp(target, {n: p for n, p in fmus.items() if n != "Compensator"})

@@ -4,6 +4,7 @@
 * :mod:`.linear` - exact discretisation of linear blocks, matrix exponential
 * :mod:`.plant` - amplifier, hysteretic stack, mechanics (the actuator) and the quartz sensor
 * :mod:`.control` - reference generator, inverse feedforward, PID, the compensator
-* :mod:`.compiled` - the same kernels compiled by numba (optional), and the packed runners the
-  units use after ``compile()``
+* :mod:`.buffers` - a unit's data packed in one buffer (what a compiled runner takes)
+* :mod:`.compiled` - the same kernels compiled by numba (optional), the packed runners, and
+  ``compile_unit`` that switches a unit to them (the units never import this module)
 """

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 
+from .buffers import pack
 from .hysteresis import PrandtlIshlinskii, pi_load, pi_save, pi_state, pi_step, pi_table
 from .linear import LinearSystem, as_floats, lti_advance, same_step
 
@@ -201,7 +202,7 @@ class Compensator:
         self.pid_s = [0.0, 0.0, 0.0, 0.0]
         self.out = [0.0, 0.0, 0.0, 0.0]
         self._h = None
-        self._run = None            # the compiled runner (after compile()), else None
+        self._run = None            # a runner handed over by use_runner(), else None
         self._bind()
 
     def _bind(self):
@@ -209,7 +210,6 @@ class Compensator:
         in place); under the compiled engine the data are first packed into one buffer (views)."""
         g = self.ginv
         if self._run is not None:
-            from .compiled import pack
             buf, o, v = pack([self.cfg, self.ref, self.gains, self.pid_s, self.inv_r, self.inv_w,
                               self.inv_z, self.inv_k, g.phi, g.g, g.cd, g.xs, g.tmp, self.out])
             (self.cfg, self.ref, self.gains, self.pid_s, self.inv_r, self.inv_w, self.inv_z,
@@ -218,15 +218,18 @@ class Compensator:
         self._args = (self.cfg, self.ref, self.gains, self.pid_s, self.inv_r, self.inv_w, self.inv_z,
                       self.inv_k, g.phi, g.g, g.cd, g.xs, g.tmp, self.out)
 
-    def compile(self):
-        """Switch to the compiled engine (numba, :mod:`.compiled`): same kernel, same results bit
-        for bit, ~0.5 us per call instead of ~2.5 us. The first use in a process compiles (a few
-        seconds). Returns ``self``."""
-        from .compiled import kernels, warm
-        self._run = kernels()["compensator_run"]
+    def use_runner(self, run):
+        """Step through ``run`` (a runner of :mod:`.compiled` taking the unit's data packed in one
+        buffer, :attr:`packed`) instead of the interpreted kernel; the data become views of that
+        buffer. :func:`.compiled.compile_unit` is the way to call this. Returns ``self``."""
+        self._run = run
         self._bind()
-        warm(self._run, 0.0, 0.0, 0.0, 1.0, *self._packed)
         return self
+
+    @property
+    def packed(self):
+        """``(buffer, offsets)`` of the unit's data under a runner (see :func:`.buffers.pack`)."""
+        return self._packed
 
     @property
     def uc(self):

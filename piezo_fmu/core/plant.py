@@ -21,7 +21,7 @@ Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made 
   (a first-order high-pass); plus offset and white measurement noise.
 
 All units keep explicit state with ``get_state``/``set_state``. Everything needs only NumPy; the
-optional compiled engine (``Actuator.compile()``, :mod:`.compiled`) needs numba.
+optional compiled engine (:func:`.compiled.compile_unit`) needs numba.
 """
 from __future__ import annotations
 
@@ -29,6 +29,7 @@ import math
 
 import numpy as np
 
+from .buffers import pack
 from .hysteresis import PrandtlIshlinskii, pi_load, pi_save, pi_state, pi_step, pi_table
 from .linear import LinearSystem, as_floats, lti_advance, same_step
 
@@ -148,7 +149,7 @@ class Actuator:
         self._adv_step = None
         self._adv_n = 1
         self.time = 0.0
-        self._run = None            # the compiled runner (after compile()), else None
+        self._run = None            # a runner handed over by use_runner(), else None
         self._bind()
 
     def _bind(self):
@@ -157,7 +158,6 @@ class Actuator:
         Under the compiled engine the data are first re-packed into one buffer (views)."""
         cr, me = self.creep, self.mech
         if self._run is not None:
-            from .compiled import pack
             buf, o, v = pack([self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w,
                               self.pi_z, self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, [self.k_force],
                               me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out])
@@ -169,15 +169,18 @@ class Actuator:
                       self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.k_force,
                       me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out)
 
-    def compile(self):
-        """Switch to the compiled engine (numba, :mod:`.compiled`): same kernel, same results bit
-        for bit, ~0.5 us per call instead of ~2.5 us, and a communication step's sub-steps in one
-        call. The first use in a process compiles (a few seconds). Returns ``self``."""
-        from .compiled import kernels, warm
-        self._run = kernels()["actuator_run"]
+    def use_runner(self, run):
+        """Step through ``run`` (a runner of :mod:`.compiled` taking the unit's data packed in one
+        buffer, :attr:`packed`) instead of the interpreted kernel; the data become views of that
+        buffer. :func:`.compiled.compile_unit` is the way to call this. Returns ``self``."""
+        self._run = run
         self._bind()
-        warm(self._run, 0.0, 1.0, 0, self.time, *self._packed)
         return self
+
+    @property
+    def packed(self):
+        """``(buffer, offsets)`` of the unit's data under a runner (see :func:`.buffers.pack`)."""
+        return self._packed
 
     # -- configuration ---------------------------------------------------------------------
     def prepare(self, h):
