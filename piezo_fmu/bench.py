@@ -32,7 +32,6 @@ Every figure is the best of a few repetitions (the machine's other load only slo
 from __future__ import annotations
 
 import ctypes
-import json
 import math
 import os
 import platform
@@ -44,7 +43,7 @@ import numpy as np
 
 from .builder import build_all
 
-__all__ = ["run_bench", "register", "KEYS"]
+__all__ = ["KEYS", "SIZES", "format_figures", "run_bench"]
 
 KEYS = ("floor_us_per_step", "cosim_us_per_step", "cosim_to_floor", "cosim_realtime_factor",
         "monolithic_samples_per_s", "monolithic_speedup_vs_cosim", "pi_ns_per_sample_operator",
@@ -65,11 +64,12 @@ def _floor_and_cosim_us(passthrough, fmus, steps, reps, engines):
     """``(floor, {engine: cosim})`` in us per step: the best of ``reps`` runs of each, taken in
     turns (floor, co-simulation with each engine, floor, ...) so that all see the same machine;
     the ratio of two measurements taken minutes apart would carry the machine's drift."""
-    from . import cosim
+    from .cosim import Plan, cosimulate
+    from .fmi import load_slaves
     from .simulate import Signal
 
     names = ("P1", "P2", "P3")
-    slaves = cosim._load({n: passthrough for n in names})
+    slaves = load_slaves({n: passthrough for n in names})
     with slaves:
         for s in slaves.values():
             s.setup(0.0)
@@ -77,7 +77,7 @@ def _floor_and_cosim_us(passthrough, fmus, steps, reps, engines):
         for s in slaves.values():
             s.exit_initialization(0.0)
         ring = [(a, "y", b, "u") for a, b in zip(names, names[1:] + names[:1])]
-        plan = cosim._Plan(slaves, names, {n: (["u"], ["y"]) for n in names}, ring, None,
+        plan = Plan(slaves, names, {n: (["u"], ["y"]) for n in names}, ring, None,
                            [(n, "y") for n in names])
         rec_every = 10
         buf = (ctypes.c_double * (plan.width * (steps // rec_every + 1)))()
@@ -90,12 +90,12 @@ def _floor_and_cosim_us(passthrough, fmus, steps, reps, engines):
             return (time.perf_counter() - t0) / steps * 1e6
 
         def system(engine):
-            res = cosim.cosimulate(fmus, Signal("sine", 45.0, 45.0, 10.0), steps * H, H,
+            res = cosimulate(fmus, Signal("sine", 45.0, 45.0, 10.0), steps * H, H,
                                    record_step=rec_every * H, engine=engine)
             return res.info["us_per_step"]
 
         for e in engines:       # compile (the numba engine: once per process) outside the timing
-            cosim.cosimulate(fmus, Signal("sine", 45.0, 45.0, 10.0), 10 * H, H, engine=e)
+            cosimulate(fmus, Signal("sine", 45.0, 45.0, 10.0), 10 * H, H, engine=e)
         runs = [(floor(), {e: system(e) for e in engines}) for _ in range(reps)]
     return min(f for f, _ in runs), {e: min(c[e] for _, c in runs) for e in engines}
 
@@ -303,38 +303,3 @@ def format_figures(r) -> str:
                          f"{r['diagnose_recording']['rate_hz']:g} Hz, 2 channels (target < 60 s)")]
     width = max(len(a) for a, _ in rows)
     return "\n".join(f"{a:<{width}}  {b}" for a, b in rows)
-
-
-def _cmd(args):
-    import sys
-
-    from .io import check_writable, write_text
-
-    if args.json:
-        check_writable(args.json, args.force)
-
-    def say(msg):
-        if not args.quiet:
-            print(msg, file=sys.stderr, flush=True)
-
-    result = run_bench(args.size, args.model, say)
-    print(format_figures(result))
-    if args.json:
-        write_text(args.json, json.dumps(result, indent=2), force=args.force)
-        say(f"wrote {args.json}")
-    return 0
-
-
-def register(subparsers):
-    p = subparsers.add_parser(
-        "bench", help="measure co-simulation, monolithic, PI and diagnose speed",
-        description="Measure, in one run: the FMI floor (3 pass-through FMUs), the co-simulation of "
-                    "the three FMUs at H = 1e-4 s, the monolithic model at 1e-5 s, PI operator "
-                    "throughput and diagnose on a 20 s, 10 kHz recording. Figures, not pass/fail.")
-    p.add_argument("--json", metavar="FILE", help="write the figures as JSON")
-    p.add_argument("--size", choices=tuple(SIZES), default="full",
-                   help="full (default, about a minute) or tiny (seconds; for tests)")
-    p.add_argument("--model", metavar="FILE.toml", default=None)
-    p.add_argument("--force", action="store_true", help="overwrite --json")
-    p.add_argument("--quiet", action="store_true")
-    p.set_defaults(func=_cmd)

@@ -33,7 +33,8 @@ from its inputs at the end of the step).
 
 Failures: a missing or unreadable FMU, a failing FMI call (with the messages the FMU logged)
 and a model whose list parameters do not fit the FMUs raise :class:`~piezo_fmu.errors.UserError`
-(:class:`FmuError`); after an fmi2Fatal no further call is made on any instance. Ctrl-C is taken
+(:class:`~piezo_fmu.fmi.FmuError`); after an fmi2Fatal no further call is made on any instance.
+The FMI binding itself (loading, ctypes calls, the FMUs' log) is :mod:`piezo_fmu.fmi`. Ctrl-C is taken
 between FMI calls (inside an FMU it would turn into an fmi2Fatal).
 
 Speed: value references are batched per FMU and the FMI functions are called through ctypes on
@@ -42,41 +43,23 @@ and step; nothing is allocated per step). Results stream in chunks to ``sink``.
 """
 from __future__ import annotations
 
-import collections
 import ctypes
 import math
-import shutil
-import signal as _signal
-import sys
-import tempfile
-import threading
 import time
-from pathlib import Path
 
 import numpy as np
 
-from . import fmilog
 from .connections import COMPONENTS, CONNECTIONS, EXTERNAL_INPUTS, ORDER, RECORDED
 from .core.compiled import ENGINES
 from .core.control import INVERSES, MODES, SIGNALS
 from .errors import UserError
+from .fmi import BUILD_HINT, DEFAULT_FMU_DIR, DeferredInterrupt, FmuError, fmu_paths, load_slaves
 from .simulate import COLUMNS, UNITS, Signal, SimResult
 
-__all__ = [
-    "ALGORITHMS",
-    "DEFAULT_FMU_DIR",
-    "FmuError",
-    "Slave",
-    "cosimulate",
-    "fmu_paths",
-    "run_cli",
-    "run_component",
-]
+__all__ = ["ALGORITHMS", "CHUNK", "DEFAULT_FMU_DIR", "FmuError", "Plan", "cosimulate", "fmu_paths",
+           "model_start_values", "run_component"]
 
-DEFAULT_FMU_DIR = Path("models")      # relative to the current folder, where `piezo-fmu build` puts them
 ALGORITHMS = ("gauss-seidel", "jacobi")
-BUILD_HINT = "build them first: piezo-fmu build --out-dir DIR"
-STATUS = ("ok", "warning", "discard", "error", "fatal", "pending")
 
 # Which FMU carries the parameters of a model section (used when an FMU has no variable of a
 # section at all, e.g. an actuator built without creep elements, to still detect a mismatch).
@@ -93,294 +76,6 @@ ENGINE_FMUS = ("Actuator", "Compensator")
 ENUM_PARAMETERS = {"compensator.mode": MODES, "compensator.inverse": INVERSES}
 
 CHUNK = 2000  # communication steps between progress reports / sink calls
-
-
-class FmuError(UserError):
-    """An FMU could not be loaded or an FMI call failed; the message carries the FMU's log."""
-
-
-# -- FMU paths ------------------------------------------------------------------------------------
-
-def fmu_paths(fmus=None, names=tuple(COMPONENTS)) -> dict:
-    """``{name: Path}`` of the FMUs, from a folder (``<folder>/<name>.fmu``) or a dict of paths.
-
-    Raises :class:`UserError` (one line, with the remedy) when a file is missing.
-    """
-    if fmus is None:
-        fmus = DEFAULT_FMU_DIR
-    if isinstance(fmus, (str, Path)):
-        folder = Path(fmus)
-        if not folder.is_dir():
-            raise UserError(f"{folder}: FMU folder not found; {BUILD_HINT}")
-        paths = {n: folder / f"{n}.fmu" for n in names}
-    else:
-        paths = {}
-        for n in names:
-            if n not in fmus:
-                raise UserError(f"no FMU given for {n} (expected keys {', '.join(names)})")
-            paths[n] = Path(fmus[n])
-    missing = [str(p) for p in paths.values() if not p.is_file()]
-    if missing:
-        raise UserError(f"{', '.join(missing)}: not found; {BUILD_HINT}")
-    return paths
-
-
-# -- one FMU instance driven through raw ctypes calls ---------------------------------------------
-
-_c_double_p = ctypes.POINTER(ctypes.c_double)
-_c_uint_p = ctypes.POINTER(ctypes.c_uint)
-_c_int_p = ctypes.POINTER(ctypes.c_int)
-
-
-class _LogBook:
-    """Collects the FMUs' log messages (per instance, the last few) from the process-wide logger
-    of :mod:`piezo_fmu.fmilog` (never a per-run native callback: see that module)."""
-
-    KEEP = 25
-
-    def __init__(self):
-        self.messages = collections.defaultdict(lambda: collections.deque(maxlen=self.KEEP))
-        self._token = fmilog.listen(self._log)
-        self.callbacks = fmilog.callbacks()
-
-    def _log(self, instance, status, category, text):
-        name = instance or "?"
-        # one line per message (the CLI reports errors on one line)
-        text = " | ".join(line.strip() for line in text.strip().splitlines() if line.strip())
-        self.messages[name].append((status, text))
-
-    def close(self):
-        fmilog.unlisten(self._token)
-
-    def describe(self, name, min_status=1):
-        """The instance's logged messages (warnings and worse; else the last ones), one per line."""
-        msgs = list(self.messages.get(name, ()))
-        picked = [m for m in msgs if m[0] >= min_status] or msgs[-3:]
-        return "; ".join(f"[{STATUS[s] if 0 <= s < len(STATUS) else s}] {t}" for s, t in picked)
-
-
-class Slave:
-    """One co-simulation FMU instance with the FMI 2.0 calls bound to ctypes.
-
-    Use :meth:`bind` to get preallocated arrays for batched ``fmi2SetReal``/``fmi2GetReal``.
-    """
-
-    def __init__(self, name, path, logbook: _LogBook):
-        from fmpy import extract, read_model_description
-        from fmpy.fmi2 import FMU2Slave
-
-        self.name = name
-        self.path = Path(path)
-        self.log = logbook
-        self.state = "new"
-        self.unzip = None
-        self.fmu = None
-        try:
-            md = read_model_description(str(path), validate=False)
-        except Exception as exc:  # noqa: BLE001 - fmpy raises bare Exception
-            raise FmuError(f"{path}: not a readable FMU ({exc}); {BUILD_HINT}") from None
-        if md.fmiVersion != "2.0" or md.coSimulation is None:
-            raise FmuError(f"{path}: not an FMI 2.0 co-simulation FMU; {BUILD_HINT}")
-        self.md = md
-        self.variables = {v.name: v for v in md.modelVariables}
-        self.unzip = tempfile.mkdtemp(prefix=f"piezo-fmu-{name}-")
-        try:
-            extract(str(path), unzipdir=self.unzip)
-            self.fmu = FMU2Slave(guid=md.guid, unzipDirectory=self.unzip,
-                                 modelIdentifier=md.coSimulation.modelIdentifier, instanceName=name)
-        except Exception as exc:  # noqa: BLE001 - fmpy raises bare Exception
-            self.close()
-            raise FmuError(f"{path}: cannot load the FMU ({exc}); {BUILD_HINT}") from None
-        # the hot calls keep the GIL (a PyDLL view of the loaded library): a pythonfmu FMU takes
-        # it on every call anyway, and releasing it around each call cost 1.3-1.9 us per step
-        dll = ctypes.PyDLL(self.fmu.dll._name, handle=self.fmu.dll._handle)
-        vp, sz, dbl, i = ctypes.c_void_p, ctypes.c_size_t, ctypes.c_double, ctypes.c_int
-
-        def bind(fname, argtypes):
-            f = getattr(dll, fname)
-            f.argtypes = argtypes
-            f.restype = ctypes.c_int
-            return f
-
-        self.set_real = bind("fmi2SetReal", [vp, _c_uint_p, sz, _c_double_p])
-        self.get_real = bind("fmi2GetReal", [vp, _c_uint_p, sz, _c_double_p])
-        self.set_integer = bind("fmi2SetInteger", [vp, _c_uint_p, sz, _c_int_p])
-        self.get_integer = bind("fmi2GetInteger", [vp, _c_uint_p, sz, _c_int_p])
-        self.do_step = bind("fmi2DoStep", [vp, dbl, dbl, i])
-        self._setup = bind("fmi2SetupExperiment", [vp, i, dbl, dbl, i, dbl])
-        self._enter = bind("fmi2EnterInitializationMode", [vp])
-        self._exit = bind("fmi2ExitInitializationMode", [vp])
-        self._terminate = bind("fmi2Terminate", [vp])
-        try:
-            self.fmu.instantiate(callbacks=logbook.callbacks, loggingOn=True)
-        except Exception:  # noqa: BLE001 - fmpy raises bare Exception
-            detail = logbook.describe(name)
-            self.close()
-            raise FmuError(f"{name} ({path}): fmi2Instantiate failed"
-                           + (f": {detail}" if detail else "")) from None
-        self.c = ctypes.c_void_p(self.fmu.component)
-        self.state = "instantiated"
-
-    # -- variables ------------------------------------------------------------------------------
-    def variable(self, name):
-        v = self.variables.get(name)
-        if v is None:
-            raise FmuError(f"{self.path}: has no variable {name!r} (the FMU does not match "
-                           f"piezo_fmu.connections); {BUILD_HINT}")
-        return v
-
-    def start_value(self, name):
-        v = self.variable(name)
-        if v.start is None:
-            return None
-        return int(v.start) if v.type == "Integer" else float(v.start)
-
-    def bind(self, names):
-        """``(vr array, value array, n)`` for a batch of Real variables (preallocated ctypes arrays)."""
-        n = len(names)
-        vr = (ctypes.c_uint * max(n, 1))(*[self.variable(x).valueReference for x in names])
-        values = (ctypes.c_double * max(n, 1))(*[float(self.variable(x).start or 0.0) for x in names])
-        return vr, values, n
-
-    # -- calls ----------------------------------------------------------------------------------
-    def check(self, status, what, t=None):
-        """Raise :class:`FmuError` with the FMU's log for a status worse than warning."""
-        if status <= 1:
-            return
-        self.state = "fatal" if status == 4 else "failed"
-        label = STATUS[status] if 0 <= status < len(STATUS) else str(status)
-        at = f" at t={t:.9g} s" if t is not None else ""
-        detail = self.log.describe(self.name)
-        raise FmuError(f"{self.name}: {what} failed{at} (status {label})"
-                       + (f": {detail}" if detail else " (the FMU logged nothing)"))
-
-    def set_values(self, values: dict):
-        """Set start values ``{name: value}`` (Real and Integer) with one call per type."""
-        reals = [(self.variable(k).valueReference, float(v)) for k, v in values.items()
-                 if self.variable(k).type == "Real"]
-        ints = [(self.variable(k).valueReference, int(v)) for k, v in values.items()
-                if self.variable(k).type in ("Integer", "Enumeration")]
-        other = [k for k in values if self.variable(k).type not in ("Real", "Integer", "Enumeration")]
-        if other:
-            raise FmuError(f"{self.name}: cannot set {', '.join(other)} (not Real or Integer)")
-        if reals:
-            vr = (ctypes.c_uint * len(reals))(*[r[0] for r in reals])
-            val = (ctypes.c_double * len(reals))(*[r[1] for r in reals])
-            self.check(self.set_real(self.c, vr, len(reals), val),
-                       "fmi2SetReal of the start values " + ", ".join(
-                           k for k in values if self.variables[k].type == "Real"))
-        if ints:
-            vr = (ctypes.c_uint * len(ints))(*[r[0] for r in ints])
-            val = (ctypes.c_int * len(ints))(*[r[1] for r in ints])
-            self.check(self.set_integer(self.c, vr, len(ints), val),
-                       "fmi2SetInteger of the start values " + ", ".join(
-                           k for k in values if self.variables[k].type != "Real"))
-
-    def get_values(self, names):
-        """Current values of Real/Integer variables as a dict (initialisation and reporting)."""
-        out = {}
-        for k in names:
-            v = self.variable(k)
-            vr = (ctypes.c_uint * 1)(v.valueReference)
-            if v.type == "Real":
-                val = (ctypes.c_double * 1)()
-                self.check(self.get_real(self.c, vr, 1, val), f"fmi2GetReal({k})")
-            else:
-                val = (ctypes.c_int * 1)()
-                self.check(self.get_integer(self.c, vr, 1, val), f"fmi2GetInteger({k})")
-            out[k] = val[0]
-        return out
-
-    def setup(self, t0, stop=None):
-        self.check(self._setup(self.c, 0, 0.0, t0, 0 if stop is None else 1,
-                               0.0 if stop is None else stop), "fmi2SetupExperiment", t0)
-
-    def enter_initialization(self, t0):
-        self.check(self._enter(self.c), "fmi2EnterInitializationMode", t0)
-        self.state = "initialization"
-
-    def exit_initialization(self, t0):
-        self.check(self._exit(self.c), "fmi2ExitInitializationMode", t0)
-        self.state = "step"
-
-    def close(self):
-        """Terminate and free the instance (not after a fatal status: the FMI forbids any call)."""
-        try:
-            if self.fmu is not None and self.state not in ("new", "fatal"):
-                if self.state == "step":
-                    self._terminate(self.c)
-                self.fmu.freeInstance()  # fmi2FreeInstance and unload the library
-            elif self.fmu is not None and self.state == "new":
-                self.fmu.freeLibrary()
-        finally:
-            self.state = "closed" if self.state != "fatal" else "fatal"
-            self.fmu = None
-            if self.unzip:
-                shutil.rmtree(self.unzip, ignore_errors=True)
-                # pythonfmu puts each instance's resources/ on sys.path: take ours off again
-                sys.path[:] = [p for p in sys.path if not str(p).startswith(self.unzip)]
-                self.unzip = None
-
-
-class _Slaves(dict):
-    """name -> :class:`Slave`; a context manager that frees them all."""
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
-
-    def close(self):
-        fatal = any(s.state == "fatal" for s in self.values())
-        for s in self.values():
-            if fatal and s.state != "closed":
-                s.state = "fatal"   # after a fatal status no FMI call on any instance
-            s.close()
-
-
-class _DeferredInterrupt:
-    """Ctrl-C during a run is taken at the next chunk boundary instead of inside FMU code.
-
-    A ``KeyboardInterrupt`` raised while an FMU's Python code runs would be swallowed by the
-    pythonfmu wrapper and come back as an fmi2Fatal status; with this handler the master raises
-    it itself, between FMI calls, and the instances are freed normally.
-    """
-
-    def __enter__(self):
-        self.hit = False
-        self.old = None
-        if (threading.current_thread() is threading.main_thread()
-                and _signal.getsignal(_signal.SIGINT) is _signal.default_int_handler):
-            self.old = _signal.signal(_signal.SIGINT, self._handler)
-        return self
-
-    def _handler(self, signum, frame):
-        self.hit = True
-
-    def check(self):
-        if self.hit:
-            self.hit = False
-            raise KeyboardInterrupt
-
-    def __exit__(self, *exc):
-        if self.old is not None:
-            _signal.signal(_signal.SIGINT, self.old)
-        if exc[0] is None:
-            self.check()
-
-
-def _load(paths: dict) -> _Slaves:
-    log = _LogBook()
-    slaves = _Slaves()
-    slaves.log = log
-    try:
-        for name, path in paths.items():
-            slaves[name] = Slave(name, path, log)
-    except BaseException:
-        slaves.close()
-        raise
-    return slaves
 
 
 # -- start values from a model file ---------------------------------------------------------------
@@ -530,7 +225,7 @@ def cosimulate(fmus, signal: Signal, stop_time: float, step: float = 1e-4, algor
     t_end = t0 + n_total * H
     w_start = time.perf_counter()
 
-    with _DeferredInterrupt() as interrupt, _load({n: paths[n] for n in ORDER}) as slaves:
+    with DeferredInterrupt() as interrupt, load_slaves({n: paths[n] for n in ORDER}) as slaves:
         comp = slaves["Compensator"]
         # start values: model, then mode/inverse/reference
         values = model_start_values(model, slaves) if model is not None else {n: {} for n in slaves}
@@ -559,7 +254,7 @@ def cosimulate(fmus, signal: Signal, stop_time: float, step: float = 1e-4, algor
         if cinv is None:
             cinv = {v: k for k, v in INVERSES.items()}.get(comp.start_value("compensator.inverse"), "?")
 
-        plan = _Plan.system(slaves)
+        plan = Plan.system(slaves)
         ext = plan.external  # (input array, index) of Compensator.x_ref, or None
         # initialisation in Gauss-Seidel order: inputs from the outputs already known
         x0 = float(signal.x_ref_at(t0, k_ideal, k_amp)) if use_ext else None
@@ -637,7 +332,7 @@ class _Step:
     )
 
 
-class _Plan:
+class Plan:
     """Bound arrays for a set of components and the two loop bodies.
 
     Generic over the components (``order``: names in Gauss-Seidel order; ``ports``: name ->
@@ -775,7 +470,7 @@ def run_component(fmu, name, inputs: dict, outputs, step, t0=0.0, model=None, st
     n = len(seqs[0]) if seqs else 0
     if any(len(s) != n for s in seqs):
         raise UserError("run_component: all input sequences must have the same length")
-    with _load(paths) as slaves:
+    with load_slaves(paths) as slaves:
         s = slaves[name]
         values = model_start_values(model, slaves)[name] if model is not None else {}
         values.update(start_values or {})
@@ -812,28 +507,3 @@ def run_component(fmu, name, inputs: dict, outputs, step, t0=0.0, model=None, st
     return {o: res[:, i] for i, o in enumerate(outputs)}
 
 
-# -- the command ----------------------------------------------------------------------------------
-
-def run_cli(args):
-    """``piezo-fmu cosim``: as ``simulate``, with the three FMUs coupled by this master."""
-    from .cli import Progress, run_to_outputs, say, signal_from_args
-    from .model import load_model
-
-    model = load_model(args.model)
-    signal = signal_from_args(args)
-    fmus = fmu_paths(args.fmu_dir)
-    bar = Progress("cosim", args.quiet)
-    kw = {"step": args.step, "algorithm": args.algorithm, "mode": args.mode, "inverse": args.inverse,
-          "model": model, "record_step": args.record_step, "progress": bar, "engine": args.engine}
-
-    def run(sink=None):
-        return cosimulate(fmus, signal, args.stop_time, sink=sink, **kw)
-
-    res, summary = run_to_outputs(args, run, lambda r: f"co-simulation ({r.info['algorithm']}), "
-                                                       f"{r.info['mode']}, {r.info['signal']}")
-    say(args, f"co-simulated {res.n_steps} steps of {res.step:g} s ({res.info['algorithm']}, 3 FMUs, "
-              f"{res.info['us_per_step']:.0f} us per step); tracking error max {summary['max_um']:.4f} um, "
-              f"avg {summary['avg_um']:.4f} um, rms {summary['rms_um']:.4f} um")
-    if args.out:
-        say(args, f"wrote {args.out}")
-    return 0

@@ -1,69 +1,65 @@
 """``piezo-fmu demo``: the main job in one command.
 
 1. reproduce the paper (``DIR/reproduction/``: tables, CSVs, figures);
-2. build the three FMUs and the SSP from ``models/paper.toml`` into ``models/`` (the build
-   location every command uses by default; these are build artefacts, rebuilt each time);
+2. build the three FMUs and the SSP from the paper's model into ``./models`` (the folder every
+   command looks in by default; these are build artefacts, rebuilt each time);
 3. co-simulate the paper's 10 Hz closed loop (0-90 V reference, dynamic inverse + PID) with fmpy
    at H = 1e-4 s, Gauss-Seidel and Jacobi, and run the monolithic model on the same experiment;
 4. compare them (``DIR/cosim_vs_monolithic.png``, ``DIR/demo.json``, the runs as CSVs).
+
+:func:`run_demo` does it and returns the summary; ``piezo-fmu demo`` (:mod:`piezo_fmu.cli.demo`)
+prints it.
 """
 from __future__ import annotations
 
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .errors import UserError
 
-__all__ = ["run_demo"]
+__all__ = ["OUTPUTS", "format_summary", "run_demo"]
 
 STEP = 1e-4
 STOP = 0.3
 
 
-def _write_run(path, res, force):
-    from .cli import CSV_HEADER
-    from .io import atomic_writer
-
-    with atomic_writer(path, "w", force=force) as fh:
-        fh.write(CSV_HEADER)
-        np.savetxt(fh, np.column_stack([res[c] for c in ("time", "x_ref", "x", "us", "uc", "ua", "F")]),
-                   delimiter=",", fmt="%.10g")
+OUTPUTS = ("demo.json", "cosim_gauss_seidel_10Hz.csv", "cosim_jacobi_10Hz.csv", "monolithic_10Hz.csv",
+           "cosim_vs_monolithic.png")
 
 
-def run_demo(args) -> int:
+def run_demo(out, fmu_dir=None, force=False, progress=None) -> dict:
+    """Reproduce the paper into ``out/reproduction``, build the FMUs and the SSP into ``fmu_dir``
+    (default ``./models``), co-simulate the paper's 10 Hz closed loop and compare it with the
+    monolithic model. Returns the summary written to ``out/demo.json`` (``reproduction``: the
+    reproduction's result; every difference in um, times in s).
+
+    ``progress(fraction, message)`` reports the stages (see :mod:`piezo_fmu.progress`).
+    """
     from .builder import build_all
     from .cosim import DEFAULT_FMU_DIR, cosimulate
+    from .io import check_out_dir
     from .model import DEFAULT_MODEL, load_model
-    from .reproduce import format_table, run_reproduction
+    from .io import write_text
+    from .reproduce import run_reproduction
+    from .results import write_run
     from .simulate import Signal, simulate
 
-    quiet = getattr(args, "quiet", False)
-
-    def say(msg):
-        if not quiet:
-            print(msg, file=sys.stderr, flush=True)
-
-    out = Path(args.out)
-    if (out / "demo.json").exists() and not args.force:
-        raise UserError(f"{out / 'demo.json'}: exists; not overwritten (use --force)")
-    out.mkdir(parents=True, exist_ok=True)
+    report = progress or (lambda fraction=None, message="": None)
+    out = check_out_dir(out, force, OUTPUTS)
+    models_dir = check_out_dir(Path(fmu_dir) if fmu_dir else DEFAULT_FMU_DIR, force=True)
     t_start = time.perf_counter()
     model = load_model(DEFAULT_MODEL)
 
-    say("1/4 reproducing the paper (Figure 5, Tables 2-4, Figures 7 and 9)")
-    repro = run_reproduction(model, out / "reproduction", force=args.force, progress=None)
-    print(format_table(repro))
+    report(0.0, "1/4 reproducing the paper (Figure 5, Tables 2-4, Figures 7 and 9)")
+    repro = run_reproduction(model, out / "reproduction", force=force,
+                             progress=lambda f, m="": report(0.6 * f, m and f"1/4 {m}"))
 
-    say("2/4 building Actuator.fmu, Sensor.fmu, Compensator.fmu and PiezoSystem.ssp")
-    models_dir = Path(args.fmu_dir) if getattr(args, "fmu_dir", None) else DEFAULT_FMU_DIR
-    models_dir.mkdir(parents=True, exist_ok=True)
+    report(0.6, "2/4 building Actuator.fmu, Sensor.fmu, Compensator.fmu and PiezoSystem.ssp")
     fmus = build_all(DEFAULT_MODEL, models_dir, log=lambda *a, **k: None)
 
-    say(f"3/4 co-simulating the paper's 10 Hz closed loop at H = {STEP:g} s (fmpy), and the monolithic model")
+    report(0.85, f"3/4 co-simulating the paper's 10 Hz closed loop at H = {STEP:g} s (fmpy), and the monolithic model")
     sig = Signal("sine", 45.0, 45.0, 10.0)
     system = {n: fmus[n] for n in ("Actuator", "Sensor", "Compensator")}
     gs = cosimulate(system, sig, STOP, STEP)
@@ -72,7 +68,7 @@ def run_demo(args) -> int:
     # the same loop with the compensator sampled at H, as in the co-simulation (actuator at 1e-5 s)
     sampled = simulate(model, sig, STOP, record_step=STEP, control_step=STEP)
 
-    say("4/4 comparing")
+    report(0.97, "4/4 comparing")
     t = gs["time"]
     stroke = float(np.ptp(mono["x_ref"]))
 
@@ -93,18 +89,26 @@ def run_demo(args) -> int:
         "cosim_vs_monolithic_sampled_at_step": {"gauss-seidel": diff(gs, sampled)},
         "tracking_error": {"monolithic": tracking(mono), "gauss-seidel": tracking(gs), "jacobi": tracking(jac)},
         "cosim_us_per_step": {"gauss-seidel": gs.info["us_per_step"], "jacobi": jac.info["us_per_step"]},
-        "files": {"fmus": {k: str(v) for k, v in fmus.items()}, "reproduction": str(out / "reproduction")},
+        "files": {"fmus": {k: str(v) for k, v in fmus.items()}, "ssp": str(fmus.ssp),
+                  "reproduction": str(out / "reproduction"), "out": str(out)},
     }
     for name, res in (("cosim_gauss_seidel_10Hz.csv", gs), ("cosim_jacobi_10Hz.csv", jac),
                       ("monolithic_10Hz.csv", mono)):
-        _write_run(out / name, res, args.force)
-    _figure(out / "cosim_vs_monolithic.png", t, gs, jac, mono, args.force)
-    from .io import write_text
+        write_run(out / name, res.data, force=force)
+    _figure(out / "cosim_vs_monolithic.png", t, gs, jac, mono, force)
 
     summary["total_s"] = time.perf_counter() - t_start
-    write_text(out / "demo.json", json.dumps(summary, indent=2), force=args.force)
+    write_text(out / "demo.json", json.dumps(summary, indent=2), force=force)
+    report(1.0)
+    summary["reproduction"] = repro
+    return summary
+
+
+def format_summary(summary) -> str:
+    """The comparison as a few lines of text (``summary`` from :func:`run_demo`)."""
     c = summary["cosim_vs_monolithic"]
-    print(f"\nco-simulation (3 FMUs, fmpy, H = {STEP:g} s) vs monolithic model, 10 Hz closed loop:\n"
+    stroke = summary["stroke_um"]
+    return (f"co-simulation (3 FMUs, fmpy, H = {STEP:g} s) vs monolithic model, 10 Hz closed loop:\n"
           f"  Gauss-Seidel: max |dx| {c['gauss-seidel']['max_um'] * 1e3:.2f} nm "
           f"({c['gauss-seidel']['max_percent_of_stroke']:.2f} % of the {stroke:.2f} um stroke)\n"
           f"  Jacobi:       max |dx| {c['jacobi']['max_um'] * 1e3:.2f} nm "
@@ -114,10 +118,7 @@ def run_demo(args) -> int:
           f"{summary['cosim_vs_monolithic_sampled_at_step']['gauss-seidel']['max_um'] * 1e3:.2f} nm\n"
           f"  tracking error rms: monolithic {summary['tracking_error']['monolithic']['rms_um'] * 1e3:.2f} nm, "
           f"co-simulation {summary['tracking_error']['gauss-seidel']['rms_um'] * 1e3:.2f} nm\n"
-          f"  {gs.info['us_per_step']:.1f} us per communication step")
-    say(f"wrote {out}/ (demo.json, reproduction/, runs as CSV, cosim_vs_monolithic.png) and "
-        f"{models_dir}/*.fmu, PiezoSystem.ssp in {summary['total_s']:.0f} s")
-    return 0
+          f"  {summary['cosim_us_per_step']['gauss-seidel']:.1f} us per communication step")
 
 
 def _figure(path, t, gs, jac, mono, force):

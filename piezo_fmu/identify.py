@@ -118,11 +118,18 @@ def identify_compensator(model: Model, *, design=True, engine="auto", progress=N
     """Identify the compensator's models from simulated noisy measurements of ``model``'s device.
 
     Returns ``(new_model, report)`` where ``report`` is a dict of the figures (residuals, fitted
-    time constant, PID design margins).
+    time constant, PID design margins). ``progress(fraction, message)`` is called at each stage (see
+    :mod:`piezo_fmu.progress`).
     """
     from .control_design import design_pid
 
-    say = progress or (lambda msg: None)
+    n_steps = 2 + len(IDENT_FREQS) + (1 if design else 0)
+    done = [0]
+
+    def say(message):
+        if progress is not None:
+            progress(done[0] / n_steps, message)
+        done[0] += 1
     new = model.copy()
 
     u_norm = 30.0
@@ -131,7 +138,7 @@ def identify_compensator(model: Model, *, design=True, engine="auto", progress=N
     # sensor calibration: us = gain * x + offset on the same record
     a = np.vstack([static_rec.x, np.ones_like(static_rec.x)]).T
     (s_gain, s_off), *_ = np.linalg.lstsq(a, static_rec.us, rcond=None)
-    say(f"sensor calibration: {s_gain:.5f} V/um, offset {s_off * 1e3:.2f} mV")
+    report_lines = [f"sensor calibration: {s_gain:.5f} V/um, offset {s_off * 1e3:.2f} mV"]
     dyn_recs = []
     for i, f in enumerate(IDENT_FREQS):
         say(f"measuring a {f:g} Hz, 0-30 V sine (5 periods)")
@@ -142,13 +149,14 @@ def identify_compensator(model: Model, *, design=True, engine="auto", progress=N
     # compensate that lag twice); G is fitted with the PI held. Three rounds converge (tau
     # changes < 0.1 %).
     num, den = [1.0], [1e-9, 1.0]
+    say("fitting the quasi-static PI jointly with the linear dynamics")
     for _ in range(3):
         u_f = apply_linear(num, den, static_rec.t, static_rec.u)
         pi, rms_pi = fit_pi(u_f, static_rec.x, IDENT_THRESHOLDS, u_norm)
         num, den, rms_dyn = fit_first_order(dyn_recs, pi, tau0=max(den[0], 1e-4))
-    say(f"quasi-static PI: rms residual {rms_pi * 1e3:.1f} nm; linear dynamics: tau = "
-        f"{den[0] * 1e3:.4f} ms (corner {1 / (2 * math.pi * den[0]):.1f} Hz), rms residual "
-        f"{rms_dyn * 1e3:.1f} nm")
+    report_lines.append(f"quasi-static PI: rms residual {rms_pi * 1e3:.1f} nm; linear dynamics: tau = "
+                        f"{den[0] * 1e3:.4f} ms (corner {1 / (2 * math.pi * den[0]):.1f} Hz), rms residual "
+                        f"{rms_dyn * 1e3:.1f} nm")
     k_ideal = ideal_gain(pi)
     src = ("identified by piezo-fmu identify from noisy simulated measurements of the device "
            "(0.5 Hz 0-30 V sine, probe noise {:.3g} um)".format(model["measurement"]["x_noise_std"]))
@@ -169,6 +177,7 @@ def identify_compensator(model: Model, *, design=True, engine="auto", progress=N
     report = {"pi_rms_um": rms_pi, "dyn_rms_um": rms_dyn, "tau_s": den[0], "k_ideal": k_ideal,
               "sensor_gain": s_gain, "sensor_offset": s_off, "weights": list(pi.weights)}
     if design:
+        say("designing the PID (python-control)")
         pid = design_pid(new)
         for key in ("Kp", "Ki", "Kd", "Tf"):
             new.set("compensator", key, float(f"{pid[key]:.6g}"), pid["source"])
@@ -176,4 +185,7 @@ def identify_compensator(model: Model, *, design=True, engine="auto", progress=N
                 "chosen: 20x the identified amplifier corner, so the dynamic inverse's own lag at "
                 "50 Hz is 1.4 deg while its high-frequency gain stays 20")
         report["pid"] = pid
+    report["summary"] = report_lines
+    if progress is not None:
+        progress(1.0)
     return new.check(), report

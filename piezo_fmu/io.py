@@ -13,11 +13,23 @@ from pathlib import Path
 
 from .errors import UserError
 
-__all__ = ["atomic_writer", "check_writable", "write_text"]
+__all__ = ["atomic_writer", "check_out_dir", "check_writable", "write_text"]
+
+
+def _probe(folder: Path, what: Path):
+    """Raise :class:`UserError` naming ``what`` unless a file can be created in ``folder``."""
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".piezo-fmu-probe-", dir=folder)
+    except OSError as exc:
+        raise UserError(f"{what}: cannot write there ({exc.strerror or exc})") from None
+    os.close(fd)
+    os.unlink(tmp)
 
 
 def check_writable(path, force=False):
-    """Raise :class:`UserError` if ``path`` exists and ``force`` is false, or its folder is missing."""
+    """Raise :class:`UserError` (one line naming ``path``) unless ``path`` can be written: it
+    exists and ``force`` is false, it is a folder, its folder is missing, or nothing can be created
+    there. Call it before any work, so a long run never ends in an error it could have foreseen."""
     path = Path(path)
     if path.exists() and not force:
         raise UserError(f"{path}: exists; not overwritten (use --force to replace it)")
@@ -26,6 +38,30 @@ def check_writable(path, force=False):
     parent = path.parent if str(path.parent) else Path(".")
     if not parent.exists():
         raise UserError(f"{parent}: folder does not exist (create it first)")
+    if not parent.is_dir():
+        raise UserError(f"{parent}: is not a folder")
+    _probe(parent, path)
+
+
+def check_out_dir(path, force=False, outputs=()) -> Path:
+    """Create the output folder ``path`` if needed and make sure files can be written in it.
+
+    ``outputs``: names of files the command will write there; one that exists is refused unless
+    ``force``. Raises :class:`UserError` with one line naming the folder or file. Returns the path.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UserError(f"{path}: exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{path}: cannot create the output folder ({exc.strerror or exc})") from None
+    _probe(path, path)
+    if not force:
+        for name in outputs:
+            if (path / name).exists():
+                raise UserError(f"{path / name}: exists; not overwritten (use --force to replace it)")
+    return path
 
 
 @contextlib.contextmanager

@@ -119,8 +119,17 @@ def _write_cell(out_dir, name, t, ideal, output, force):
 
 def run_reproduction(model: Model, out_dir, *, force=False, engine="auto", figures=True,
                      progress=None) -> dict:
-    """Run all experiments, write ``reproduction.json``, the cell CSVs and the figures into ``out_dir``."""
-    say = progress or (lambda msg: None)
+    """Run all experiments, write ``reproduction.json``, the cell CSVs and the figures into ``out_dir``.
+
+    ``progress(fraction, message)`` is called before each experiment (see :mod:`piezo_fmu.progress`).
+    """
+    n_steps = 1 + 4 * len(FREQS) + (1 if figures else 0)
+    done = [0]
+
+    def say(message):
+        if progress is not None:
+            progress(done[0] / n_steps, message)
+        done[0] += 1
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"{out_dir}: exists and is not a folder")
@@ -164,6 +173,8 @@ def run_reproduction(model: Model, out_dir, *, force=False, engine="auto", figur
         say("figures")
         result["figures"] = _figures(out_dir, model, rec5, width5, fig5, runs, force)
     write_text(out_dir / "reproduction.json", json.dumps(result, indent=2), force=force)
+    if progress is not None:
+        progress(1.0)
     return result
 
 

@@ -151,7 +151,7 @@ def test_ctrl_c_in_a_real_process_leaves_no_partial_file(tmp_path):
     import time
 
     out = tmp_path / "long.csv"
-    proc = subprocess.Popen([sys.executable, "-m", "piezo_fmu.cli", "simulate", "--stop-time", "60",
+    proc = subprocess.Popen([sys.executable, "-m", "piezo_fmu", "simulate", "--stop-time", "60",
                              "--engine", "python", "--out", str(out), "--quiet"],
                             stderr=subprocess.PIPE, text=True,
                             # a shell's background job inherits SIGINT ignored, and Python then never
@@ -180,7 +180,7 @@ def test_help_explains_every_command(capsys):
 
 
 def test_debug_shows_the_traceback(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "piezo_fmu.cli", "--debug", "simulate", "--model",
+    proc = subprocess.run([sys.executable, "-m", "piezo_fmu", "--debug", "simulate", "--model",
                            str(tmp_path / "none.toml")], capture_output=True, text=True)
     assert proc.returncode != 0 and "Traceback" in proc.stderr
 

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from piezo_fmu.cli import CSV_HEADER, main
+from piezo_fmu.cli import main
+from piezo_fmu.results import CSV_HEADER
 from piezo_fmu.connections import ORDER
 from piezo_fmu.cosim import FmuError, cosimulate, run_component
 from piezo_fmu.errors import UserError
