@@ -8,6 +8,7 @@ from slavebase import SlaveBase as Fmi2Slave
 
 from piezo_fmu.core import units
 from piezo_fmu.core.compiled import ENGINES, compile_unit
+from piezo_fmu.core.plant import PICKOFFS
 
 
 class Actuator(Fmi2Slave):
@@ -27,13 +28,14 @@ class Actuator(Fmi2Slave):
                "amplifier.I_max", "hysteresis.scale", "hysteresis.weights", "hysteresis.saturation",
                "drift.offset", "drift.rate", "drift.curvature", "simulation.actuator_max_step")
     CHECK = staticmethod(units.check_sections)   # the same consistency rules as model files
+    CODES = {"mechanics.pickoff": PICKOFFS}
 
     def define(self):
         self.add_input("uc", 3.0, "V", "amplifier command voltage")
         self.add_output("x", "um", "push-rod displacement")
-        self.add_output("F", "N", "force of the stack on the push rod (F_out)")
+        self.add_output("F", "N", "force on the quartz sensor (F_out, or k_f x with mechanics.pickoff = load)")
         self.add_output("ua", "V", "amplifier output (stack) voltage")
-        self.add_model_parameters(self.PARAMETERS, self.TUNABLE)
+        self.add_model_parameters(self.PARAMETERS, self.TUNABLE, self.CODES)
         self.add_engine_parameter(ENGINES)
 
     def make_unit(self, sections):

@@ -79,6 +79,8 @@ SCHEMA = {
         "u_max": _f("V", "finite", "upper output rail"),
         "I_max": _f("A", "positive_or_inf", "output current limit (inf: none)", math.inf),
         "delay": _f("s", "nonneg", "command latency (transport or sampling delay)", 0.0),
+        "tau_2": _f("s", "nonneg", "time constant of a first-order input stage before the output "
+                                   "stage R C_a: a second-order amplifier (0: none, eq. 2)", 0.0),
     },
     "hysteresis": {**_hyst("device's"),
                    "saturation": _f("um", "positive_or_inf",
@@ -93,6 +95,10 @@ SCHEMA = {
         "c": _f("N*s/m", "nonneg", "equivalent viscous damping (eq. 4)"),
         "k_a": _f("N/m", "positive", "stack stiffness; F_out = k_a x_free (eq. 5)"),
         "k_f": _f("N/m", "nonneg", "preload spring and housing stiffness (eq. 4)"),
+        "pickoff": Spec("1", "str", doc="the force the quartz wafer carries: stack (the stack's F_out, "
+                                         "paper eq. 3) | load (the preload spring's k_f x: the sensor "
+                                         "follows the push-rod displacement)",
+                        default="stack", choices=("stack", "load")),
     },
     "resonance": {
         "f_n": _f("Hz", "nonneg", "natural frequency of a further mode in series (0: none)", 0.0),
@@ -113,10 +119,14 @@ SCHEMA = {
         "offset": _f("V", "finite", "output offset", 0.0),
         "noise_std": _f("V", "nonneg", "white measurement noise, standard deviation", 0.0),
         "seed": Spec("1", "int", "nonneg", "noise seed", 0),
+        "lag": _f("s", "nonneg", "sampling lag of the sensor voltage (whole steps; 0: none)", 0.0),
     },
     "measurement": {
         "x_noise_std": _f("um", "nonneg", "noise of the displacement measurement (capacitive probe)", 0.0),
         "seed": Spec("1", "int", "nonneg", "seed of the displacement noise", 0),
+        "lag": _f("s", "nonneg", "sampling lag of the displacement probe's reading (acquisition, "
+                                 "not the device: the x of simulate and the FMUs is the push-rod "
+                                 "itself; diagnose aligns recordings by it)", 0.0),
     },
     "compensator": {
         "mode": Spec(None, "str", doc="open | ff | fb | ff+fb", choices=("open", "ff", "fb", "ff+fb")),

@@ -118,7 +118,7 @@ class SimResult:
 
 def closed_loop(n, h, t0, k0, rec_every, ctrl_every, xref, use_ext, noise,
                 amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
-                cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, k_force,
+                cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, frc,
                 me_phi, me_g, me_cd, me_xs, me_tmp, drift, act_out, act_time,
                 sen, sen_s, cfg, ref, gains, pid_s, inv_r, inv_w, inv_z, inv_k,
                 gi_phi, gi_g, gi_cd, gi_xs, gi_tmp, comp_out, rec):
@@ -145,7 +145,7 @@ def closed_loop(n, h, t0, k0, rec_every, ctrl_every, xref, use_ext, noise,
     for k in range(n):
         ta += h
         actuator_step(uc, h, ta, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
-                      cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, k_force,
+                      cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, frc,
                       me_phi, me_g, me_cd, me_xs, me_tmp, drift, act_out)
         count -= 1
         rcount -= 1
@@ -199,7 +199,7 @@ def _unit_args(act, sen, comp, as_arrays):
     act_time = [act.time]
     a = [arr(act.amp), arr(act.amp_s), arr(act.dly), arr(act.dly_buf), arr(act.pi_r), arr(act.pi_w),
          arr(act.pi_z), arr(act.pi_k), arr(cr.phi), arr(cr.g),
-         arr(cr.cd), arr(cr.xs), arr(cr.tmp), act.k_force,
+         arr(cr.cd), arr(cr.xs), arr(cr.tmp), arr(act.frc),
          arr(me.phi), arr(me.g), arr(me.cd), arr(me.xs), arr(me.tmp),
          arr(act.drift), arr(act.out), arr(act_time)]
     s = [arr(sen.sen), arr(sen.sen_s)]

@@ -135,6 +135,63 @@ def test_sensor_sensitivity_and_leakage():
     assert us[200] / us[100] == pytest.approx(math.exp(-0.1 / 0.1), rel=1e-3)
 
 
+def test_second_order_amplifier_follows_two_lags():
+    """amplifier.tau_2: the stack voltage of two cascaded lags, to second order in the step; 0 keeps
+    the first-order amplifier bit for bit."""
+    tau, tau2, k = 1e-3, 0.4e-3, 10.0
+    pi = PrandtlIshlinskii((0.0,), (1.0,), 1.0, 1.0)
+    kw = dict(k_amp=k, R=tau / 1e-6, C_a=1e-6, u_min=-1e9, u_max=1e9, hysteresis=pi, m=1e-3, c=10.0,
+              k_a=1e8, k_f=1e7)
+    t = np.arange(1, 101) * 1e-4
+    exact = k * (1 - (tau * np.exp(-t / tau) - tau2 * np.exp(-t / tau2)) / (tau - tau2))
+    for h, tol in ((1e-4, 2e-3), (1e-5, 2e-5)):
+        act = Actuator(tau_2=tau2, max_step=h, **kw)
+        got = []
+        for _ in range(100):
+            act.advance(1.0, 1e-4)
+            got.append(act.ua)
+        assert np.max(np.abs(np.array(got) - exact)) < tol * k
+    one = Actuator(max_step=1e-4, **kw)
+    zero = Actuator(tau_2=0.0, max_step=1e-4, **kw)
+    assert [one.advance(1.0 + (j % 7), 1e-4) for j in range(50)] == [zero.advance(1.0 + (j % 7), 1e-4) for j in range(50)]
+    assert [one.advance(1.0, 1e-4) for _ in range(5)] != [Actuator(tau_2=tau2, **kw).advance(1.0, 1e-4) for _ in range(5)]
+
+
+def test_load_pickoff_senses_the_spring_force():
+    """mechanics.pickoff = load: the sensed force is k_f x (drift excluded), with the mechanics' ringing."""
+    model = load_model()
+    m = model.copy()
+    m.sections["mechanics"]["pickoff"] = "load"
+    m.sections["drift"]["rate"] = 0.3
+    act = make_actuator(m)
+    me = model["mechanics"]
+    for j in range(300):
+        act.advance(3.0 + 2.0 * (j > 100), 1e-5)
+        assert act.F == pytest.approx(me["k_f"] * 1e-6 * (act.x - 0.3 * act.time), rel=1e-12, abs=1e-15)
+    assert make_actuator(model).advance(3.0, 1e-5) != 0.0
+
+
+def test_sensor_lag_delays_the_voltage_by_whole_steps():
+    """sensor.lag: the output is the noise-free voltage of lag/h steps before plus this step's noise."""
+    kw = dict(d11=2.31e-12, thickness=1e-3, eps_r=4.5, area=9.3e-5, C_load=1e-9, tau_leak=0.2,
+              offset=0.01, noise_std=0.001, seed=4)
+    forces = [100.0 * math.sin(j / 5) for j in range(80)]
+    ref = Sensor(**{**kw, "noise_std": 0.0})
+    ref.reset()
+    clean = [ref.step(f, 1e-4) for f in forces]
+    lagged = Sensor(**kw, lag=2e-4)
+    lagged.reset()
+    got = [lagged.step(f, 1e-4) for f in forces]
+    noise = NoiseSource(0.001, 4)
+    noise = [noise.next() for _ in forces]
+    want = [ref.sensitivity * 0 + 0.01 + n for n in noise[:2]] + [c + n for c, n in zip(clean, noise[2:])]
+    assert got == pytest.approx(want, rel=0, abs=1e-15)
+    state = lagged.get_state()
+    more = [lagged.step(3.0, 1e-4) for _ in range(4)]
+    lagged.set_state(state)
+    assert [lagged.step(3.0, 1e-4) for _ in range(4)] == more
+
+
 def test_noise_is_reproducible_and_resumable():
     a = NoiseSource(1.0, 7)
     first = [a.next() for _ in range(5000)]

@@ -44,9 +44,9 @@ KERNEL_ORDER = (
 )
 
 # the buffer regions of the runners, in :func:`~.plant.actuator_step` / :func:`~.control.compensator_step`
-# argument order (k_force, a scalar of the actuator kernel, is a region of one value)
+# argument order
 ACTUATOR_REGIONS = ("amp", "amp_s", "dly", "dly_buf", "pi_r", "pi_w", "pi_z", "pi_k", "cr_phi",
-                    "cr_g", "cr_cd", "cr_xs", "cr_tmp", "k_force", "me_phi", "me_g", "me_cd",
+                    "cr_g", "cr_cd", "cr_xs", "cr_tmp", "frc", "me_phi", "me_g", "me_cd",
                     "me_xs", "me_tmp", "drift", "out")
 COMPENSATOR_REGIONS = ("cfg", "ref", "gains", "pid_s", "inv_r", "inv_w", "inv_z", "inv_k",
                        "gi_phi", "gi_g", "gi_cd", "gi_xs", "gi_tmp", "out")
@@ -65,13 +65,12 @@ def actuator_run(uc, h, n, t, buf, o):
     """``n`` internal steps of :func:`~.plant.actuator_step` with the command ``uc`` [V] held,
     each ``h`` [s], from time ``t`` [s], on the unit data packed in ``buf`` (regions
     :data:`ACTUATOR_REGIONS` at offsets ``o``). Returns the time at the end."""
-    kf = buf[o[13]]
     for _ in range(n):
         t += h
         actuator_step(uc, h, t, buf[o[0]:o[1]], buf[o[1]:o[2]], buf[o[2]:o[3]], buf[o[3]:o[4]],
                       buf[o[4]:o[5]], buf[o[5]:o[6]], buf[o[6]:o[7]], buf[o[7]:o[8]],
                       buf[o[8]:o[9]], buf[o[9]:o[10]], buf[o[10]:o[11]], buf[o[11]:o[12]],
-                      buf[o[12]:o[13]], kf, buf[o[14]:o[15]], buf[o[15]:o[16]],
+                      buf[o[12]:o[13]], buf[o[13]:o[14]], buf[o[14]:o[15]], buf[o[15]:o[16]],
                       buf[o[16]:o[17]], buf[o[17]:o[18]], buf[o[18]:o[19]], buf[o[19]:o[20]],
                       buf[o[20]:o[21]])
     return t

@@ -2,13 +2,17 @@
 
 Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made hysteretic)::
 
-    uc [V] -> delay -> amplifier -> ua [V] -> PI -> x_h [um] -> creep -> x_free [um]
+    uc [V] -> delay -> (input stage) -> amplifier -> ua [V] -> PI -> x_h [um] -> creep -> x_free [um]
            F_out = k_a x_free [N] -> mechanics -> x [um] (+ drift)
+           sensed force F = F_out (pick-off "stack") or k_f x (pick-off "load")
 
 * Amplifier (eq. 2): ``R C_a dua/dt + ua = k_amp uc``, output held between the rails
   ``[u_min, u_max]``, and (beyond the paper) an optional current limit ``|C_a dua/dt| <= I_max``,
   i.e. a slew-rate limit. With the command held over a step the response is monotone, so the
-  rate-independent PI evaluated at the step's end point is exact.
+  rate-independent PI evaluated at the step's end point is exact. Optionally (beyond the paper) a
+  second lag stage ``tau_2 dy/dt + y = uc`` before it makes the amplifier second order; the output
+  stage then sees ``y``'s mean over the step held (exact for ``y``, second-order accurate in ``h``
+  for ``ua``).
 * Stack (eq. 1 with hysteresis): the free stroke ``x_h = scale * Pi[ua / u_norm]`` (beyond the
   paper, optionally saturating at high field: ``x_h / (1 + |x_h| / y_sat)``); the generated
   force on the push rod is ``F_out = k_a x_h`` (eq. 5: ``k_a n d33 ua`` in the linear case).
@@ -16,9 +20,13 @@ Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made 
   mechanical mode (``extra_resonance``); solved exactly for an input interpolated linearly
   over the step.
 * Creep (beyond the paper): ``x_free = (1 + sum_j g_j / (tau_j s + 1)) x_h``.
-* Sensor (eq. 3): the quartz charge ``q = d11 F_out`` on ``C_s + C_load`` gives
+* Sensor (eq. 3): the quartz charge ``q = d11 F`` on ``C_s + C_load`` gives
   ``us = q / (C_s + C_load)``; with a finite leakage time constant the charge decays
-  (a first-order high-pass); plus offset and white measurement noise.
+  (a first-order high-pass); plus offset and white measurement noise. ``F`` is the force the
+  wafer carries: the stack's ``F_out`` (the paper's placement, pick-off ``"stack"``) or, with the
+  wafer in the load path (pick-off ``"load"``), the preload spring's ``k_f x``, which follows the
+  push-rod displacement through the mechanics. Optionally the output is sampled late by a whole
+  number of steps (``lag``: the acquisition's sampling lag).
 
 All units keep explicit state with ``get_state``/``set_state``. Everything needs only NumPy; the
 optional compiled engine (:func:`.compiled.compile_unit`) needs numba.
@@ -36,7 +44,10 @@ from .linear import LinearSystem, as_floats, lti_advance, same_step
 EPS0 = 8.8541878128e-12  # vacuum permittivity [F/m]
 
 __all__ = ["amp_step", "actuator_step", "Actuator", "Sensor",
-           "sensor_step", "EPS0"]
+           "sensor_step", "EPS0", "PICKOFFS"]
+
+# what the quartz wafer's force is (mechanics.pickoff), as the FMUs' Integer codes
+PICKOFFS = {"stack": 0, "load": 1}
 
 
 def amp_step(ua, target, tau, slew, h, decay):
@@ -56,16 +67,18 @@ def amp_step(ua, target, tau, slew, h, decay):
 
 
 def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
-                  cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, k_force,
+                  cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, frc,
                   me_phi, me_g, me_cd, me_xs, me_tmp, drift, out):
     """One internal step of the actuator with the command ``uc`` [V] held over ``h`` [s].
 
-    ``amp`` = [k_amp, tau, slew, u_min, u_max, decay]; ``amp_s`` = [ua];
+    ``amp`` = [k_amp, tau, slew, u_min, u_max, decay, tau_2, decay_2, mean_2] (``tau_2`` > 0: a
+    first-order input stage before the output stage, ``decay_2`` = exp(-h/tau_2), ``mean_2`` =
+    (tau_2/h)(1 - decay_2)); ``amp_s`` = [ua, y] (``y`` the input stage's output);
     ``dly`` = [n_delay_steps, head] (delay line of the command, ``dly_buf`` its ring buffer);
     ``pi_k`` = [1/u_norm, scale, 1/saturation] (strain saturation ``x_h / (1 + |x_h| / y_sat)``,
-    0 = none); ``k_force`` = k_a * 1e-6 [N/um]; ``drift`` = polynomial
-    coefficients of an additive displacement drift in time [um, um/s, um/s^2, ...].
-    Writes ``out`` = [x [um], F_out [N], ua [V], x_h [um]].
+    0 = none); ``frc`` = [k_a * 1e-6 [N/um], pick-off code (0 stack, 1 load), k_f * 1e-6 [N/um]];
+    ``drift`` = polynomial coefficients of an additive displacement drift in time [um, um/s, ...].
+    Writes ``out`` = [x [um], F [N] (the sensed force), ua [V], x_h [um]].
     """
     nd = int(dly[0])
     if nd > 0:
@@ -74,6 +87,11 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
         dly_buf[head] = uc
         uc = dly_buf[(head - nd) % size]
         dly[1] = (head + 1) % size
+    if amp[6] > 0.0:
+        # input stage, exact for the held command; the output stage sees its mean over the step
+        e2 = amp_s[1] - uc
+        amp_s[1] = uc + e2 * amp[7]
+        uc = uc + e2 * amp[8]
     target = amp[0] * uc
     if target < amp[3]:
         target = amp[3]
@@ -85,8 +103,10 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     if pi_k[2] != 0.0:
         x_h = x_h / (1.0 + abs(x_h) * pi_k[2])
     x_free = lti_advance(cr_phi, cr_g, cr_cd, cr_xs, x_h, cr_tmp)
-    force = k_force * x_free
+    force = frc[0] * x_free
     x = lti_advance(me_phi, me_g, me_cd, me_xs, force, me_tmp)
+    if frc[1] != 0.0:
+        force = frc[2] * x
     nd2 = len(drift)
     if nd2:
         acc = 0.0
@@ -106,11 +126,13 @@ class Actuator:
     ----------
     k_amp : amplifier gain [V/V]; R : series resistance [ohm]; C_a : stack capacitance [F];
     u_min, u_max : amplifier rails [V]; I_max : current limit [A] (``inf``: none);
+    tau_2 : time constant of a first-order input stage before the output stage [s] (0: none);
     delay : command latency [s] (resolved to the internal step);
     hysteresis : :class:`PrandtlIshlinskii` from ua [V] to free stroke [um];
     saturation : strain saturation ``y_sat`` [um]: ``x_h -> x_h / (1 + |x_h| / y_sat)`` (``inf``: none);
     creep_gains, creep_taus : creep elements (dimensionless gains, time constants [s]);
     m [kg], c [N s/m], k_a [N/m] (stack), k_f [N/m] (preload spring);
+    pickoff : the force output ``F``: ``"stack"`` (F_out = k_a x_free) or ``"load"`` (k_f x);
     resonance : optional ``(f_n [Hz], zeta [1])`` of a further mode in series (unity DC gain);
     drift : polynomial coefficients of an additive drift [um, um/s, ...].
     max_step : largest internal step [s]; a communication step is split into equal sub-steps.
@@ -120,10 +142,14 @@ class Actuator:
 
     def __init__(self, *, k_amp, R, C_a, u_min, u_max, hysteresis: PrandtlIshlinskii,
                  m, c, k_a, k_f, saturation=math.inf, I_max=math.inf, delay=0.0, creep_gains=(), creep_taus=(),
-                 resonance=None, drift=(), max_step=1e-4):
+                 resonance=None, drift=(), max_step=1e-4, tau_2=0.0, pickoff="stack"):
         self.k_amp, self.R, self.C_a = float(k_amp), float(R), float(C_a)
         self.u_min, self.u_max, self.I_max = float(u_min), float(u_max), float(I_max)
         self.delay = float(delay)
+        self.tau_2 = float(tau_2)
+        if pickoff not in PICKOFFS:
+            raise ValueError(f"pickoff {pickoff!r}: expected one of {', '.join(PICKOFFS)}")
+        self.pickoff = pickoff
         self.hysteresis = hysteresis
         self.saturation = float(saturation)
         self.m, self.c, self.k_a, self.k_f = float(m), float(c), float(k_a), float(k_f)
@@ -133,8 +159,8 @@ class Actuator:
         self.drift = [float(v) for v in drift]
         self.max_step = float(max_step)
         tau = self.R * self.C_a
-        self.amp = [self.k_amp, tau, self.I_max / self.C_a, self.u_min, self.u_max, 0.0]
-        self.amp_s = [0.0]
+        self.amp = [self.k_amp, tau, self.I_max / self.C_a, self.u_min, self.u_max, 0.0, self.tau_2, 0.0, 0.0]
+        self.amp_s = [0.0, 0.0]
         self.dly = [0.0, 0.0]
         self.dly_buf = [0.0]
         self.pi_r = list(hysteresis.thresholds)
@@ -143,6 +169,7 @@ class Actuator:
         self.pi_k = [1.0 / hysteresis.in_scale, hysteresis.out_scale, 1.0 / self.saturation]
         self.creep = LinearSystem(*creep_tf(self.creep_gains, self.creep_taus))
         self.k_force = self.k_a * 1e-6
+        self.frc = [self.k_force, float(PICKOFFS[pickoff]), self.k_f * 1e-6]
         self.mech = LinearSystem(*mechanics_tf(self.m, self.c, self.k_a, self.k_f, self.resonance))
         self.out = [0.0, 0.0, 0.0, 0.0]
         self._h = None
@@ -159,14 +186,14 @@ class Actuator:
         cr, me = self.creep, self.mech
         if self._run is not None:
             buf, o, v = pack([self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w,
-                              self.pi_z, self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, [self.k_force],
+                              self.pi_z, self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.frc,
                               me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out])
             (self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w, self.pi_z,
-             self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, _, me.phi, me.g, me.cd, me.xs, me.tmp,
+             self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.frc, me.phi, me.g, me.cd, me.xs, me.tmp,
              self.drift, self.out) = v
             self._packed = (buf, o)
         self._args = (self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w, self.pi_z,
-                      self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.k_force,
+                      self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.frc,
                       me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out)
 
     def use_runner(self, run):
@@ -188,6 +215,10 @@ class Actuator:
         if same_step(h, self._h):
             return
         self.amp[5] = math.exp(-h / self.amp[1])
+        if self.tau_2 > 0.0:
+            d2 = math.exp(-h / self.tau_2)
+            self.amp[7] = d2
+            self.amp[8] = (self.tau_2 / h) * (1.0 - d2)
         self.creep.prepare(h)
         self.mech.prepare(h)
         nd = int(round(self.delay / h)) if self.delay > 0 else 0
@@ -250,6 +281,7 @@ class Actuator:
         """Relaxed device at rest at time ``t0`` (zero command, zero memory)."""
         self.time = float(t0)
         self.amp_s[0] = 0.0
+        self.amp_s[1] = 0.0
         for i in range(len(self.pi_z)):
             self.pi_z[i] = 0.0
         self.creep.settle(0.0)
@@ -263,7 +295,7 @@ class Actuator:
 
     def get_state(self):
         """Complete state as plain Python data (JSON-serialisable)."""
-        return {"time": self.time, "ua": float(self.amp_s[0]), "z": as_floats(pi_save(self.pi_r, self.pi_z)),
+        return {"time": self.time, "ua": float(self.amp_s[0]), "y2": float(self.amp_s[1]), "z": as_floats(pi_save(self.pi_r, self.pi_z)),
                 "creep": as_floats(self.creep.xs), "mech": as_floats(self.mech.xs),
                 "dly": as_floats(self.dly), "dly_buf": as_floats(self.dly_buf), "out": as_floats(self.out),
                 "h": self._h}
@@ -271,6 +303,7 @@ class Actuator:
     def set_state(self, s):
         self.time = float(s["time"])
         self.amp_s[0] = float(s["ua"])
+        self.amp_s[1] = float(s.get("y2", 0.0))
         pi_load(self.pi_r, self.pi_w, self.pi_z, s["z"])
         self.creep.xs[:] = [float(v) for v in s["creep"]]
         self.mech.xs[:] = [float(v) for v in s["mech"]]
@@ -310,10 +343,12 @@ def mechanics_tf(m, c, k_a, k_f, resonance=None):
 def sensor_step(force, h, sen, sen_s, noise):
     """Quartz sensor output [V] at the end of a step whose force moved linearly to ``force`` [N].
 
-    ``sen`` = [S_q [V/N], leak_decay = exp(-h/tau_leak) (0 < .. <= 1), tau_leak/h, offset [V]];
-    ``sen_s`` = [w, F_prev, us] where ``us = S_q F + w`` (+ offset and noise) and ``w`` is the
-    leaked part (``tau dw/dt = -(w + S_q F)``, solved exactly for the linear force ramp); ``us``
-    is the last output. ``noise`` is the additive noise sample [V] for this output.
+    ``sen`` = [S_q [V/N], leak_decay = exp(-h/tau_leak) (0 < .. <= 1), tau_leak/h, offset [V],
+    n_lag]; ``sen_s`` = [w, F_prev, us, head, v_0 .. v_n_lag] where ``us = S_q F + w`` (+ offset and
+    noise) and ``w`` is the leaked part (``tau dw/dt = -(w + S_q F)``, solved exactly for the linear
+    force ramp); ``us`` is the last output. With ``n_lag`` > 0 the output is the noise-free voltage
+    of ``n_lag`` steps before (ring buffer ``v`` at ``head``) plus this step's noise: a sampling lag.
+    ``noise`` is the additive noise sample [V] for this output.
     """
     sq = sen[0]
     a = sen[1]
@@ -325,7 +360,17 @@ def sensor_step(force, h, sen, sen_s, noise):
         w = a * sen_s[0] - sq * ((1.0 - a) * f0 + (force - f0) * (1.0 - (1.0 - a) * r))
         sen_s[0] = w
     sen_s[1] = force
-    us = sq * force + sen_s[0] + sen[3] + noise
+    nl = int(sen[4])
+    if nl > 0:
+        v = sq * force + sen_s[0] + sen[3]
+        head = int(sen_s[3])
+        size = nl + 1
+        sen_s[4 + head] = v
+        head = (head + 1) % size
+        sen_s[3] = head
+        us = sen_s[4 + head] + noise          # the oldest entry: n_lag steps ago
+    else:
+        us = sq * force + sen_s[0] + sen[3] + noise
     sen_s[2] = us
     return us
 
@@ -340,18 +385,20 @@ class Sensor:
     C_load : cable and input capacitance in parallel [F] (0: the paper's eq. 3)
     tau_leak : charge leakage time constant [s] (``inf``: no leakage, as in the paper)
     offset : output offset [V]; noise_std : white noise standard deviation [V]; seed : noise seed
+    lag : sampling lag of the output [s], resolved to whole steps (0: none)
     """
 
     def __init__(self, *, d11, thickness, eps_r, area, C_load=0.0, tau_leak=math.inf,
-                 offset=0.0, noise_std=0.0, seed=0):
+                 offset=0.0, noise_std=0.0, seed=0, lag=0.0):
         self.d11, self.thickness, self.eps_r, self.area = (float(d11), float(thickness),
                                                            float(eps_r), float(area))
         self.C_load, self.tau_leak = float(C_load), float(tau_leak)
         self.offset, self.noise_std, self.seed = float(offset), float(noise_std), int(seed)
         self.C_s = EPS0 * self.eps_r * self.area / self.thickness
         self.sensitivity = self.d11 / (self.C_s + self.C_load)       # [V/N]
-        self.sen = [self.sensitivity, 1.0, 0.0, self.offset]
-        self.sen_s = [0.0, 0.0, self.offset]
+        self.lag = float(lag)
+        self.sen = [self.sensitivity, 1.0, 0.0, self.offset, 0.0]
+        self.sen_s = [0.0, 0.0, self.offset, 0.0]
         self.noise = NoiseSource(self.noise_std, self.seed)
         self._h = None
 
@@ -366,6 +413,12 @@ class Sensor:
         if math.isfinite(self.tau_leak):
             self.sen[1] = math.exp(-h / self.tau_leak)
             self.sen[2] = self.tau_leak / h
+        nl = int(round(self.lag / h)) if self.lag > 0 else 0
+        if nl != int(self.sen[4]):
+            # the delay line holds the last noise-free value for every lagged step
+            fill = self.sen_s[2] if len(self.sen_s) == 4 else self.sen_s[4 + int(self.sen_s[3])]
+            self.sen[4] = float(nl)
+            self.sen_s[3:] = [0.0] + [fill] * (nl + 1 if nl else 0)
         self._h = h
 
     def step(self, force, h):
@@ -379,10 +432,13 @@ class Sensor:
         self.sen_s[1] = float(force)
         self.noise.reset()
         self.sen_s[2] = self.sensitivity * force + self.offset
+        self.sen_s[3] = 0.0
+        for i in range(4, len(self.sen_s)):
+            self.sen_s[i] = self.sen_s[2]
 
     def get_state(self):
         return {"w": self.sen_s[0], "F": self.sen_s[1], "us": self.us, "noise": self.noise.get_state(),
-                "h": self._h}
+                "h": self._h, "lag_line": as_floats(self.sen_s[3:])}
 
     def set_state(self, s):
         self.sen_s[0], self.sen_s[1] = float(s["w"]), float(s["F"])
@@ -390,6 +446,9 @@ class Sensor:
         self.noise.set_state(s["noise"])
         if s["h"] is not None:
             self.prepare(float(s["h"]))
+        line = s.get("lag_line")
+        if line is not None and len(line) == len(self.sen_s) - 3:
+            self.sen_s[3:] = [float(v) for v in line]
 
 
 class NoiseSource:

@@ -26,6 +26,9 @@ def check_sections(sections) -> list:
     a = sections.get("amplifier")
     if a is not None and not a["u_max"] > a["u_min"]:
         problems.append(f"amplifier.u_max: must exceed amplifier.u_min ({a['u_max']} <= {a['u_min']})")
+    me = sections.get("mechanics")
+    if me is not None and me.get("pickoff", "stack") == "load" and not me["k_f"] > 0:
+        problems.append("mechanics.pickoff: 'load' needs a load spring (mechanics.k_f > 0)")
     c = sections.get("compensator")
     if c is not None and not c["uc_max"] > c["uc_min"]:
         problems.append(f"compensator.uc_max: must exceed compensator.uc_min "
@@ -81,7 +84,8 @@ def actuator_from(sections) -> Actuator:
     f_n = res.get("f_n", 0.0)
     act = Actuator(
         k_amp=a["k_amp"], R=a["R"], C_a=a["C_a"], u_min=a["u_min"], u_max=a["u_max"],
-        I_max=a.get("I_max", float("inf")), delay=a.get("delay", 0.0),
+        I_max=a.get("I_max", float("inf")), delay=a.get("delay", 0.0), tau_2=a.get("tau_2", 0.0),
+        pickoff=me.get("pickoff", "stack"),
         hysteresis=hysteresis_from(sections),
         saturation=sections["hysteresis"].get("saturation", float("inf")),
         m=me["m"], c=me["c"], k_a=me["k_a"], k_f=me["k_f"],
