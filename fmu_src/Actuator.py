@@ -33,7 +33,7 @@ class Actuator(Fmi2Slave):
     def define(self):
         self.add_input("uc", 3.0, "V", "amplifier command voltage")
         self.add_output("x", "um", "push-rod displacement")
-        self.add_output("F", "N", "force on the quartz sensor (F_out, or k_f x with mechanics.pickoff = load)")
+        self.add_output("F", "N", "force on the quartz sensor (as mechanics.pickoff says)")
         self.add_output("ua", "V", "amplifier output (stack) voltage")
         self.add_model_parameters(self.PARAMETERS, self.TUNABLE, self.CODES)
         self.add_engine_parameter(ENGINES)

@@ -30,7 +30,7 @@ COMPONENTS = {
     "Actuator": (
         Port("uc", "input", "V", "amplifier command voltage"),
         Port("x", "output", "um", "push-rod displacement"),
-        Port("F", "output", "N", "force on the quartz sensor (F_out, or k_f x with mechanics.pickoff = load)"),
+        Port("F", "output", "N", "force on the quartz sensor (as mechanics.pickoff says)"),
         Port("ua", "output", "V", "amplifier output (stack) voltage"),
     ),
     "Sensor": (

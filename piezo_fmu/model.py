@@ -95,10 +95,11 @@ SCHEMA = {
         "c": _f("N*s/m", "nonneg", "equivalent viscous damping (eq. 4)"),
         "k_a": _f("N/m", "positive", "stack stiffness; F_out = k_a x_free (eq. 5)"),
         "k_f": _f("N/m", "nonneg", "preload spring and housing stiffness (eq. 4)"),
-        "pickoff": Spec("1", "str", doc="the force the quartz wafer carries: stack (the stack's F_out, "
-                                         "paper eq. 3) | load (the preload spring's k_f x: the sensor "
-                                         "follows the push-rod displacement)",
-                        default="stack", choices=("stack", "load")),
+        "pickoff": Spec("1", "str", doc="the force the quartz wafer carries: stack (the stack's blocked "
+                                         "force F_out, paper eq. 5) | contact (between stack and push rod, "
+                                         "k_a (x_free - x): the modes show in it) | load (the preload "
+                                         "spring's k_f x: it follows the push-rod displacement)",
+                        default="stack", choices=("stack", "contact", "load")),
     },
     "resonance": {
         "f_n": _f("Hz", "nonneg", "natural frequency of a further mode in series (0: none)", 0.0),

@@ -1,7 +1,7 @@
 """The units' compiled engine (``compiled.compile_unit``): the same kernels
 run by numba on the unit's data packed into one buffer must give the interpreted results bit for
 bit, through every branch the FMUs reach (delay line resized, creep of order 0-3, extra resonance,
-drift, current limit, saturation, second-order amplifier, load pick-off, sub-steps, every compensator mode and inverse), and the state
+drift, current limit, saturation, second-order amplifier, load and contact pick-offs, sub-steps, every compensator mode and inverse), and the state
 must move between the engines unchanged."""
 import copy
 import math
@@ -37,6 +37,7 @@ ACTUATORS = {
                    "drift.curvature": -0.05, "simulation.actuator_max_step": 2.5e-5,
                    "amplifier.tau_2": 2e-4, "mechanics.pickoff": "load"},
     "one creep element": {"creep.gains": [0.03], "creep.time_constants": [0.05]},
+    "contact pick-off": {"mechanics.pickoff": "contact", "amplifier.tau_2": 1e-4, "resonance.f_n": 900.0},
 }
 
 

@@ -157,8 +157,9 @@ def test_second_order_amplifier_follows_two_lags():
     assert [one.advance(1.0, 1e-4) for _ in range(5)] != [Actuator(tau_2=tau2, **kw).advance(1.0, 1e-4) for _ in range(5)]
 
 
-def test_load_pickoff_senses_the_spring_force():
-    """mechanics.pickoff = load: the sensed force is k_f x (drift excluded), with the mechanics' ringing."""
+def test_pickoffs_sense_the_spring_or_the_contact_force():
+    """mechanics.pickoff = load: the sensed force is k_f x (drift excluded), with the mechanics' ringing;
+    contact: k_a (x_free - x)."""
     model = load_model()
     m = model.copy()
     m.sections["mechanics"]["pickoff"] = "load"
@@ -169,6 +170,14 @@ def test_load_pickoff_senses_the_spring_force():
         act.advance(3.0 + 2.0 * (j > 100), 1e-5)
         assert act.F == pytest.approx(me["k_f"] * 1e-6 * (act.x - 0.3 * act.time), rel=1e-12, abs=1e-15)
     assert make_actuator(model).advance(3.0, 1e-5) != 0.0
+    m.sections["mechanics"]["pickoff"] = "contact"
+    act = make_actuator(m)
+    ref = make_actuator(model)
+    for j in range(300):
+        act.advance(3.0 + 2.0 * (j > 100), 1e-5)
+        ref.advance(3.0 + 2.0 * (j > 100), 1e-5)
+        # the contact force k_a (x_free - x) = F_out - k_a x (the mechanics' inertia and damping show)
+        assert act.F == pytest.approx(ref.F - me["k_a"] * 1e-6 * (act.x - 0.3 * act.time), rel=1e-9, abs=1e-12)
 
 
 def test_sensor_lag_delays_the_voltage_by_whole_steps():

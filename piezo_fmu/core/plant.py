@@ -4,7 +4,7 @@ Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made 
 
     uc [V] -> delay -> (input stage) -> amplifier -> ua [V] -> PI -> x_h [um] -> creep -> x_free [um]
            F_out = k_a x_free [N] -> mechanics -> x [um] (+ drift)
-           sensed force F = F_out (pick-off "stack") or k_f x (pick-off "load")
+           sensed force F = F_out (pick-off "stack"), k_a (x_free - x) ("contact") or k_f x ("load")
 
 * Amplifier (eq. 2): ``R C_a dua/dt + ua = k_amp uc``, output held between the rails
   ``[u_min, u_max]``, and (beyond the paper) an optional current limit ``|C_a dua/dt| <= I_max``,
@@ -23,9 +23,10 @@ Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made 
 * Sensor (eq. 3): the quartz charge ``q = d11 F`` on ``C_s + C_load`` gives
   ``us = q / (C_s + C_load)``; with a finite leakage time constant the charge decays
   (a first-order high-pass); plus offset and white measurement noise. ``F`` is the force the
-  wafer carries: the stack's ``F_out`` (the paper's placement, pick-off ``"stack"``) or, with the
-  wafer in the load path (pick-off ``"load"``), the preload spring's ``k_f x``, which follows the
-  push-rod displacement through the mechanics. Optionally the output is sampled late by a whole
+  wafer carries: the stack's blocked force ``F_out`` (the paper's eq. 5, pick-off ``"stack"``), the
+  contact force between stack and push rod ``k_a (x_free - x) = m x'' + c x' + k_f x`` (``"contact"``:
+  the mechanics' modes show in it), or the preload spring's ``k_f x`` (``"load"``: it follows the
+  push-rod displacement). Optionally the output is sampled late by a whole
   number of steps (``lag``: the acquisition's sampling lag).
 
 All units keep explicit state with ``get_state``/``set_state``. Everything needs only NumPy; the
@@ -47,7 +48,7 @@ __all__ = ["amp_step", "actuator_step", "Actuator", "Sensor",
            "sensor_step", "EPS0", "PICKOFFS"]
 
 # what the quartz wafer's force is (mechanics.pickoff), as the FMUs' Integer codes
-PICKOFFS = {"stack": 0, "load": 1}
+PICKOFFS = {"stack": 0, "load": 1, "contact": 2}
 
 
 def amp_step(ua, target, tau, slew, h, decay):
@@ -76,7 +77,7 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     (tau_2/h)(1 - decay_2)); ``amp_s`` = [ua, y] (``y`` the input stage's output);
     ``dly`` = [n_delay_steps, head] (delay line of the command, ``dly_buf`` its ring buffer);
     ``pi_k`` = [1/u_norm, scale, 1/saturation] (strain saturation ``x_h / (1 + |x_h| / y_sat)``,
-    0 = none); ``frc`` = [k_a * 1e-6 [N/um], pick-off code (0 stack, 1 load), k_f * 1e-6 [N/um]];
+    0 = none); ``frc`` = [k_a * 1e-6 [N/um], pick-off code (0 stack, 1 load, 2 contact), k_f * 1e-6 [N/um]];
     ``drift`` = polynomial coefficients of an additive displacement drift in time [um, um/s, ...].
     Writes ``out`` = [x [um], F [N] (the sensed force), ua [V], x_h [um]].
     """
@@ -105,8 +106,10 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     x_free = lti_advance(cr_phi, cr_g, cr_cd, cr_xs, x_h, cr_tmp)
     force = frc[0] * x_free
     x = lti_advance(me_phi, me_g, me_cd, me_xs, force, me_tmp)
-    if frc[1] != 0.0:
+    if frc[1] == 1.0:
         force = frc[2] * x
+    elif frc[1] == 2.0:
+        force = force - frc[0] * x
     nd2 = len(drift)
     if nd2:
         acc = 0.0
@@ -132,7 +135,8 @@ class Actuator:
     saturation : strain saturation ``y_sat`` [um]: ``x_h -> x_h / (1 + |x_h| / y_sat)`` (``inf``: none);
     creep_gains, creep_taus : creep elements (dimensionless gains, time constants [s]);
     m [kg], c [N s/m], k_a [N/m] (stack), k_f [N/m] (preload spring);
-    pickoff : the force output ``F``: ``"stack"`` (F_out = k_a x_free) or ``"load"`` (k_f x);
+    pickoff : the force output ``F``: ``"stack"`` (F_out = k_a x_free), ``"contact"`` (k_a (x_free - x))
+    or ``"load"`` (k_f x);
     resonance : optional ``(f_n [Hz], zeta [1])`` of a further mode in series (unity DC gain);
     drift : polynomial coefficients of an additive drift [um, um/s, ...].
     max_step : largest internal step [s]; a communication step is split into equal sub-steps.
