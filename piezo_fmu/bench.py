@@ -25,6 +25,8 @@
    is O(1) per sample away from reversals (see ``core.hysteresis.pi_step``), so the figure per
    sample (``pi_*_ns_per_sample``) is the more telling one; "per operator" divides it by n = 9.
 5. ``diagnose_s``: ``diagnose`` on a synthetic recording of 20 s at 10 kHz with two channels.
+6. ``write_csv_s``, ``write_parquet_s``: writing the 1e6 rows of a 100 s run recorded every 1e-4 s
+   (the command line's default) through :class:`piezo_fmu.results.RunWriter` (target < 5 s).
 
 Every figure is the best of a few repetitions (the machine's other load only slows runs down).
 ``--size tiny`` runs each part briefly so the test suite can check the benchmark keeps working.
@@ -51,8 +53,10 @@ KEYS = ("floor_us_per_step", "cosim_us_per_step", "cosim_to_floor", "cosim_realt
 H = 1e-4
 
 SIZES = {  # steps per co-simulation run, repetitions, monolithic seconds, PI samples, diagnose recording
-    "full": dict(steps=5000, reps=10, mono_s=10.0, mono_py_s=0.2, pi_n=200_000, diag=(20.0, 10_000.0)),
-    "tiny": dict(steps=300, reps=1, mono_s=0.02, mono_py_s=0.01, pi_n=2_000, diag=(0.6, 2_000.0)),
+    "full": dict(steps=5000, reps=10, mono_s=10.0, mono_py_s=0.2, pi_n=200_000, diag=(20.0, 10_000.0),
+                 write_rows=1_000_000),
+    "tiny": dict(steps=300, reps=1, mono_s=0.02, mono_py_s=0.01, pi_n=2_000, diag=(0.6, 2_000.0),
+                 write_rows=2_000),
 }
 
 
@@ -191,6 +195,31 @@ def _diagnose_s(model_path, seconds, fs, workdir):
     return time.perf_counter() - t0
 
 
+def _write_figures(rows, reps, workdir):
+    """Seconds to write ``rows`` recorded rows (a 100 s run at the CLI's default recording step of
+    1e-4 s is 1e6 rows) through :class:`~piezo_fmu.results.RunWriter`, as CSV and as Parquet, in
+    the chunks ``simulate`` streams (50 000 rows)."""
+    from .results import RunWriter
+
+    t = np.arange(rows) * 1e-4
+    table = np.column_stack([t, 2.2 + 2.2 * np.sin(2 * np.pi * 10 * t), 2.2 + 2.1 * np.sin(2 * np.pi * 10 * t - 0.1),
+                             1e-3 * np.cos(t), 4.5 + np.sin(t), 45 + 45 * np.sin(t), 400 * np.sin(t)])
+    out = {"write_rows": rows}
+    for fmt in ("csv", "parquet"):
+        path = Path(workdir) / f"bench.{fmt}"
+
+        def once():
+            t0 = time.perf_counter()
+            with RunWriter(path, force=True) as w:
+                for k in range(0, rows, 50_000):
+                    w(table[k:k + 50_000])
+            return time.perf_counter() - t0
+        out[f"write_{fmt}_s"] = _best(once, max(1, min(reps, 3)))
+        out[f"write_{fmt}_MB"] = path.stat().st_size / 1e6
+        path.unlink()
+    return out
+
+
 def _machine():
     cpu = platform.processor() or platform.machine()
     try:
@@ -257,6 +286,8 @@ def run_bench(size="full", model=None, say=None) -> dict:
         # the interpreted model against the interpreted FMUs (NumPy only on both sides)
         out["monolithic_python_speedup_vs_cosim_python"] = _speedup(
             out["cosim_python_us_per_step"], out["monolithic_python_samples_per_s"])
+        say(f"writing {cfg['write_rows']:,} recorded rows as CSV and Parquet")
+        out.update(_write_figures(cfg["write_rows"], cfg["reps"], tmp))
         say("PI operator throughput")
         out.update(_pi_figures(m, cfg["pi_n"], cfg["reps"]))
         seconds, fs = cfg["diag"]
@@ -299,6 +330,10 @@ def format_figures(r) -> str:
                                      "ns per sample)"),
             ("PI scan, vectorised", f"{r['pi_forward_scan_ns_per_sample_operator']:.1f} ns per sample and "
                                     "operator"),
+            ("writing a 100 s run (1e6 rows at 1e-4 s)" if r["write_rows"] == 1_000_000
+             else f"writing {r['write_rows']} rows",
+             f"CSV {r['write_csv_s']:.2f} s ({r['write_csv_MB']:.0f} MB), Parquet {r['write_parquet_s']:.2f} s "
+             f"({r['write_parquet_MB']:.0f} MB) (target < 5 s)"),
             ("diagnose", f"{r['diagnose_s']:.1f} s for {r['diagnose_recording']['seconds']:g} s at "
                          f"{r['diagnose_recording']['rate_hz']:g} Hz, 2 channels (target < 60 s)")]
     width = max(len(a) for a, _ in rows)

@@ -59,12 +59,15 @@ class Progress:
         self.fraction = 0.0
         self.done = False
         self._open_line = False
+        self._stage_start = (self.t0, 0.0)
 
-    def eta(self, fraction: float, elapsed: float) -> float:
-        """Seconds left, from the rate so far (``inf`` until 1 % is done)."""
-        if fraction < 0.01:
+    def eta(self, fraction: float, now: float) -> float:
+        """Seconds left at the rate since the current stage began (``inf`` until 1 % more is done),
+        so that a slow start (a compiler, a build) does not inflate the estimate."""
+        t_stage, f_stage = self._stage_start
+        if fraction - f_stage < 0.01:
             return math.inf
-        return elapsed * (1.0 - fraction) / fraction
+        return (now - t_stage) * (1.0 - fraction) / (fraction - f_stage)
 
     def __call__(self, fraction=None, message=""):
         if not self.enabled or self.done:
@@ -75,6 +78,8 @@ class Progress:
             self.message = message
         if fraction is not None:
             self.fraction = min(max(float(fraction), 0.0), 1.0)
+        if new_stage:
+            self._stage_start = (now, self.fraction)
         finished = fraction is not None and self.fraction >= 1.0 and not message
         if not (new_stage or finished or now - self.last >= self.interval):
             return
@@ -88,7 +93,7 @@ class Progress:
             self._write(f"{self.label}: {self.message} ({format_seconds(elapsed)})", final=True)
             return
         text = f"{100 * self.fraction:5.1f} %, {format_seconds(elapsed)}, ETA " \
-               f"{format_seconds(self.eta(self.fraction, elapsed))}"
+               f"{format_seconds(self.eta(self.fraction, now))}"
         if self.tty:
             n = int(self.WIDTH * self.fraction)
             bar = "#" * n + "." * (self.WIDTH - n)

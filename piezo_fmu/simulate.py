@@ -189,6 +189,9 @@ def compiled_kernels():
 
 # -- running ------------------------------------------------------------------------------------
 
+_COMPILED_LOOP_RAN = []          # non-empty once the compiled loop has run in this process
+
+
 def _unit_args(act, sen, comp, as_arrays):
     """Argument lists (state shared with the units, or NumPy copies for the compiled engine)."""
     cr, me, gi = act.creep, act.mech, comp.ginv
@@ -279,7 +282,8 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
     noise : bool
         Include the sensor noise of the model.
     progress : callable, optional
-        Called as ``progress(fraction)`` after each chunk.
+        Called as ``progress(fraction)`` after each chunk (and ``progress(0.0, message)`` before
+        the compiled loop is compiled, the first time in a process; see :mod:`piezo_fmu.progress`).
     sink : callable, optional
         Called with each recorded chunk (an ``(n, 7)`` array); when given, nothing is kept in
         memory and the result holds only the last chunk, so long runs stream to disk.
@@ -320,10 +324,16 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
     runner = compiled_kernels()["closed_loop"] if engine == "numba" else closed_loop
     compile_s = 0.0
     if engine == "numba":      # compile (first call in the process) outside the timed loop
+        announce = progress is not None and not _COMPILED_LOOP_RAN
+        if announce:
+            progress(0.0, "compiling the model with numba (once per process, a few seconds)")
         w0 = time.perf_counter()
         runner(0, h, t0, 0, rec_every, ctrl_every, np.zeros(1), use_ext, np.zeros(1), *a, *s, *c,
                np.empty((1, 7)))
         compile_s = time.perf_counter() - w0
+        _COMPILED_LOOP_RAN.append(True)
+        if announce:
+            progress(0.0, "simulating")
 
     first = np.array([[t0, comp.out[1], act.x, sen.us, comp.uc, act.ua, act.F]])
     period = rec_every * ctrl_every // math.gcd(rec_every, ctrl_every)
