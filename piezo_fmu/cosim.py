@@ -166,7 +166,7 @@ def cosimulate(fmus, signal: Signal, stop_time: float, step: float = 1e-4, algor
     ----------
     fmus : folder or dict
         A folder holding ``Actuator.fmu``, ``Sensor.fmu`` and ``Compensator.fmu`` (``None``: the
-        repository's ``models/``), or ``{name: path}``.
+        folder ``./models`` where ``piezo-fmu build`` puts them), or ``{name: path}``.
     signal : Signal
         The reference (a generator configures the Compensator's; a table is fed to ``x_ref``).
     stop_time : float

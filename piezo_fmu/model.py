@@ -28,7 +28,7 @@ from .core.units import check_sections
 from .errors import UserError
 
 __all__ = ["Spec", "SCHEMA", "ModelError", "Model", "load_model", "loads_model", "validate_model",
-           "dump_model", "DEFAULT_MODEL"]
+           "dump_model", "DEFAULT_MODEL", "split_key", "key_spec", "with_values"]
 
 # the model file of the paper, shipped inside the package (the repository's models/paper.toml)
 DEFAULT_MODEL = Path(str(files("piezo_fmu.model_files").joinpath("paper.toml")))
@@ -348,7 +348,35 @@ def loads_model(text, origin="<string>") -> Model:
 
 
 def load_model(path=None) -> Model:
-    """Load and validate a model file (default: ``models/paper.toml``)."""
+    """Load and validate a model file.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        A TOML model file (format: ``models/paper.toml``: every value as
+        ``{ value = ..., unit = "...", source = "..." }``). Default: the paper's model, shipped
+        inside the package (:data:`DEFAULT_MODEL`).
+
+    Returns
+    -------
+    Model
+        The validated parameters; ``model["amplifier"]["R"]`` is the value in the file's unit
+        (every unit is checked against the schema, e.g. ohm, F, um, V/V), ``model.path`` the file.
+
+    Raises
+    ------
+    ModelError
+        (a :class:`~piezo_fmu.errors.UserError`) naming the file and the first problems: a missing
+        file, invalid TOML, an unknown or missing key, a wrong unit or type, a non-physical value,
+        an unstable filter or a non-invertible hysteresis.
+
+    Examples
+    --------
+    >>> from piezo_fmu import load_model
+    >>> model = load_model()
+    >>> model["amplifier"]["R"]          # ohm
+    400.0
+    """
     path = Path(path) if path is not None else DEFAULT_MODEL
     if not path.exists():
         raise ModelError(f"{path}: model file not found")
@@ -382,6 +410,107 @@ def validate_model(model) -> list:
     except tomllib.TOMLDecodeError as exc:
         return [f"not valid TOML: {exc}"]
     return _parse(raw, "<model>")[3]
+
+
+def split_key(name) -> tuple:
+    """``"section.key"`` or ``"section.key[i]"`` -> ``(section, key, i)`` (``i`` 1-based or ``None``).
+
+    The names of the FMU parameters: ``amplifier.R``, ``hysteresis.weights[3]`` (the third
+    weight), ``compensator.hysteresis.scale``. Raises :class:`ModelError` naming ``name`` when the
+    section or key is not in :data:`SCHEMA`, or an index is given for a single value (or is not a
+    whole number >= 1).
+    """
+    text = str(name).strip()
+    index = None
+    if text.endswith("]") and "[" in text:
+        text, _, tail = text[:-1].partition("[")
+        try:
+            index = int(tail)
+        except ValueError:
+            raise ModelError(f"{name}: the index in [...] must be a whole number >= 1") from None
+        if index < 1:
+            raise ModelError(f"{name}: indices are 1-based, like the FMU parameters (got [{index}])")
+    section, _, key = text.rpartition(".")
+    if not section or section not in SCHEMA:
+        known = ", ".join(s for s in SCHEMA if s != "model")
+        raise ModelError(f"{name}: unknown section {section or text!r} (known: {known})")
+    if key not in SCHEMA[section]:
+        raise ModelError(f"{name}: unknown key {key!r} of [{section}] (known: {', '.join(SCHEMA[section])})")
+    if index is not None and SCHEMA[section][key].kind != "floats":
+        raise ModelError(f"{name}: {section}.{key} is a single value, not a list; drop the [{index}]")
+    return section, key, index
+
+
+def key_spec(name) -> Spec:
+    """The :class:`Spec` of a parameter name (``section.key`` or ``section.key[i]``): unit, kind.
+
+    For an element ``[i]`` of a list the kind is ``float``."""
+    section, key, index = split_key(name)
+    spec = SCHEMA[section][key]
+    if index is not None:
+        return Spec(spec.unit, "float", "finite" if spec.check == "thresholds" else spec.check, spec.doc)
+    return spec
+
+
+def with_values(model: Model, values: dict, source: str = "override") -> Model:
+    """A copy of ``model`` with some parameters replaced, validated again.
+
+    Parameters
+    ----------
+    model : Model
+        The base model (not changed).
+    values : dict
+        ``{name: value}`` with names as the FMU parameters: ``"amplifier.R"`` (a value in the
+        model file's unit, here ohm), ``"hysteresis.weights[3]"`` (one element of a list,
+        1-based), ``"creep.gains"`` (a whole list), ``"compensator.mode"`` (a string).
+    source : str
+        The provenance recorded for the replaced values.
+
+    Returns
+    -------
+    Model
+        The new model. Raises :class:`ModelError` naming the parameter when a name is unknown, an
+        index is out of range, a value has the wrong type or is non-physical, or the changed model
+        fails a cross-check (rails in order, invertible hysteresis, stable ``G(s)``, ...).
+
+    Examples
+    --------
+    >>> m = with_values(load_model(), {"hysteresis.weights[3]": 0.5, "amplifier.R": 410.0})
+    >>> m["amplifier"]["R"], m["hysteresis"]["weights"][2]
+    (410.0, 0.5)
+    """
+    new = model.copy()
+    new.path = None
+    problems = []
+    for name, value in values.items():
+        section, key, index = split_key(name)
+        spec = SCHEMA[section][key]
+        current = new.sections.setdefault(section, {}).get(key)
+        if isinstance(value, np.generic):
+            value = value.item()
+        if index is not None:
+            length = len(current or [])
+            if index > length:
+                problems.append(f"{name}: index out of range ({section}.{key} has {length} values in "
+                                f"this model; indices are 1-based)")
+                continue
+            value, problem = _check_value(name, key_spec(name), value)
+            if not problem:
+                current = list(current)
+                current[index - 1] = value
+                value = current
+        else:
+            value, problem = _check_value(name, spec, value)
+        if problem:
+            problems.append(problem)
+            continue
+        new.set(section, key, value, source)
+    if not problems:
+        problems = _cross_checks(new.sections)
+    if problems:
+        more = f" (and {len(problems) - 3} more)" if len(problems) > 3 else ""
+        raise ModelError("; ".join(problems[:3]) + more)
+    return new
 
 
 def _toml_value(v):

@@ -20,7 +20,29 @@ def diagnose(recordings, model=None, out=None, *, force=False, columns=None, sca
              figures=True):
     """Diagnose recording files against a model; write the results into ``out`` when given.
 
-    Returns the :class:`~piezo_fmu.diagnose.run.Diagnosis` (``.result`` is diagnosis.json).
+    Parameters
+    ----------
+    recordings : list of str or Path
+        CSV files with a header row: ``time`` [s] (uniform), ``u`` [V] (the amplifier command) and
+        ``x`` [um] (displacement) and/or ``us`` [V] (sensor voltage). Several are fitted together.
+    model : str or Path, optional
+        The nominal model file (default: the paper's).
+    out : str or Path, optional
+        Folder for diagnosis.json, fit.csv, model.toml, report.html and figures (created; files
+        there are not overwritten without ``force``).
+    columns, scale : dict, optional
+        ``{"time": "t", "x": "disp"}`` maps column names; ``{"x": 1e6}`` multiplies a column after
+        reading (m -> um).
+    say : callable, optional
+        ``say(message)`` for progress messages.
+    figures : bool
+        Write the PNG figures (report.html embeds them).
+
+    Returns
+    -------
+    Diagnosis
+        ``.result`` is the content of diagnosis.json (held-out RMSE per channel in the channel's
+        unit, um or V; findings with confidence 0..1; parameters with units).
     """
     from ..model import load_model
     from .report import check_outputs, write_outputs
