@@ -1,9 +1,11 @@
-"""Shared base class of the piezo-fmu co-simulation slaves (FMI 2.0 CS through pythonfmu 0.7.0).
+"""Shared base class of the piezo-fmu co-simulation slaves (FMI 2.0 CS, authored with pythonfmu).
 
-``piezo-fmu build`` (:mod:`piezo_fmu.builder`) bundles this module into every FMU together with a copy of :mod:`piezo_fmu.core`,
-under a package name that is unique per FMU and content-hashed, and rewrites the imports. A slave
-script therefore imports it by its plain name and keeps the literal class line the pythonfmu
-wrapper searches for (regex ``^class (\\w+)\\(\\s*Fmi2Slave\\s*\\)\\s*:``)::
+``piezo-fmu build`` (:mod:`piezo_fmu.builder`) bundles this module, the modules it is split into
+(``slavevars``, ``statecodec``, ``nativeslave``, ``pythonfmu_compat``) and a copy of
+:mod:`piezo_fmu.core` into every FMU, under a package name that is unique per FMU and
+content-hashed, and rewrites the imports. A slave script therefore imports it by its plain name and
+keeps the literal class line pythonfmu's builder searches for (regex
+``^class (\\w+)\\(\\s*Fmi2Slave\\s*\\)\\s*:``)::
 
     from slavebase import SlaveBase as Fmi2Slave
     class Actuator(Fmi2Slave):
@@ -14,10 +16,14 @@ wrapper searches for (regex ``^class (\\w+)\\(\\s*Fmi2Slave\\s*\\)\\s*:``)::
 
 What the base provides:
 
-* Registration of Real/Integer variables with unit, description and variability, and of every
-  parameter of a model section (``<section>.<key>``, list elements ``<section>.<key>[i]``, 1-based)
-  from the model bundled as ``resources/piezo_model.json`` (values, units, docs and constraints
-  of ``piezo_fmu.model.SCHEMA``, written by the build).
+* Registration of variables and model parameters (:mod:`slavevars`), from the model bundled as
+  ``resources/piezo_model.json`` (values, units, docs and constraints of
+  ``piezo_fmu.model.SCHEMA``, written by the build).
+* Two ways in: the FMUs' native runtime (``fmu_src/runtime``, the C binary the build bundles)
+  calls the ``_rt_*`` entry points of :mod:`nativeslave`, which serve inputs and outputs from a
+  shared buffer; pythonfmu's binary (the build's fallback without a C compiler) calls the
+  ``get_real``/``set_real``/``do_step``/... methods below directly, with the workarounds of
+  :mod:`pythonfmu_compat`.
 * Fast ``get_real``/``set_real``/``get_integer``: per-mode tables ``{vr: attribute}``, explicit
   loops, no allocation beyond the returned list. Anything unusual (unknown vr, non-float, NaN,
   a parameter, a variable that may not be set in this mode) falls through to a fully checked
@@ -29,17 +35,15 @@ What the base provides:
   set in step mode rebuilds the core unit and carries its state over (the new value acts from the
   next step); a combination the core rejects is rolled back with an error naming the parameters.
 * Complete FMU state (registered variables + the unit's ``get_state()`` + bookkeeping), deep-copied
-  in and out, and an exact, deterministic JSON serialization.
-* The pythonfmu 0.7.0 refcount workaround (see :meth:`SlaveBase._fail`).
+  in and out, and an exact, deterministic serialization (:mod:`statecodec`).
 
 Every error is logged through ``self.log`` with status error, naming the variable, and then
-raised; the pythonfmu wrapper turns any Python exception into fmi2Fatal (it cannot report
-fmi2Error). The instance stays usable after such an error.
+raised as :class:`FmuUsageError`; the native runtime returns fmi2Error (pythonfmu's binary can
+only say fmi2Fatal). The instance stays usable after such an error.
 """
 from __future__ import annotations
 
 import copy
-import ctypes
 import functools
 import json
 import math
@@ -49,8 +53,11 @@ import traceback
 import weakref
 
 import pythonfmu
-from pythonfmu import Fmi2Causality, Fmi2Slave, Fmi2Variability, Integer, Real
+from nativeslave import NativeSlave
+from pythonfmu import Fmi2Slave
 from pythonfmu.enums import Fmi2Status  # not re-exported by pythonfmu 0.7.0
+from slavevars import FmuUsageError, VariableRegistry, value_problem
+from statecodec import InvalidState, State, state_dumps, state_loads
 
 __all__ = ["MODEL_JSON", "FmuUsageError", "SlaveBase", "state_dumps", "state_loads"]
 
@@ -64,152 +71,16 @@ TERMINATED = "terminated"
 BROKEN = "broken"                   # a step produced a non-finite value; restore a state or reset
 _MODES = (INSTANTIATED, INIT, STEP, TERMINATED, BROKEN)
 _CANONICAL = {m: m for m in _MODES}   # do_step compares modes by identity: restored states use these
+# what the native runtime may serve from its buffer in each mode: (fmi2GetReal, fmi2SetReal) of
+# inputs/outputs; initialization mode computes outputs lazily, sets outside step mode mark the
+# initial values dirty or are refused with a message: those go through Python
+_RT_FAST = {INSTANTIATED: (1, 0), INIT: (0, 0), STEP: (1, 1), BROKEN: (1, 1), TERMINATED: (1, 0)}
 
 _INF = math.inf
-_INT_MAX = 2 ** 31 - 1
-
-# pythonfmu 0.7.0 C++ wrapper: handle_py_exception() -> cleanPyObject() Py_XDECREFs pClass_,
-# pInstance_ and pMessages_ (the log queue) on EVERY Python exception, without nulling them or
-# taking new references. The 2nd exception of an instance frees its log queue and the next call
-# segfaults the host. Versions whose binary has this bug (the build records the version of the
-# binary it bundled in piezo_model.json):
-_WRAPPERS_STEALING_REFS = frozenset({"0.7.0"})
-_incref = ctypes.pythonapi.Py_IncRef
-_incref.argtypes = [ctypes.py_object]
-_incref.restype = None
 
 
-class FmuUsageError(RuntimeError):
-    """Illegal FMI usage or value; the pythonfmu wrapper reports it as fmi2Fatal."""
-
-
-# ---------------------------------------------------------------------------------------------
-# exact, deterministic state codec
-# ---------------------------------------------------------------------------------------------
-# json writes floats with float.__repr__, which round-trips bit-exactly (also -0.0, and
-# inf/nan as Infinity/NaN); big ints are exact. Types json would silently change are tagged:
-#   {"__t": [...]} tuple, {"__d": [[k, v], ...]} dict with non-str keys (or keys starting "__"),
-#   {"__nd": [...], "dt": str, "sh": [...]} numpy array, {"__ns": v, "dt": str} numpy scalar.
-_PLAIN = (str, int, float, bool, type(None))
-
-
-def _encode(o):
-    t = type(o)
-    if t in _PLAIN:                   # exact type: np.float64 (a float subclass) is tagged
-        return o
-    if t is list:
-        return [_encode(x) for x in o]
-    if t is tuple:
-        return {"__t": [_encode(x) for x in o]}
-    if t is dict:
-        if all(type(k) is str and not k.startswith("__") for k in o):
-            return {k: _encode(v) for k, v in o.items()}
-        return {"__d": [[_encode(k), _encode(v)] for k, v in o.items()]}
-    np = sys.modules.get("numpy")
-    if np is not None:
-        if t is np.ndarray:
-            if o.dtype.kind not in "biuf":
-                raise TypeError(f"unsupported ndarray dtype {o.dtype}")
-            return {"__nd": o.ravel().tolist(), "dt": o.dtype.str, "sh": list(o.shape)}
-        if isinstance(o, np.generic):
-            return {"__ns": o.item(), "dt": o.dtype.str}
-    raise TypeError(f"cannot serialize an object of type {t.__name__}")
-
-
-def _decode(o):
-    t = type(o)
-    if t is list:
-        return [_decode(x) for x in o]
-    if t is dict:
-        if "__t" in o:
-            return tuple(_decode(x) for x in o["__t"])
-        if "__d" in o:
-            return {_decode(k): _decode(v) for k, v in o["__d"]}
-        if "__nd" in o:
-            import numpy as np
-            return np.array(o["__nd"], dtype=np.dtype(o["dt"])).reshape(o["sh"])
-        if "__ns" in o:
-            import numpy as np
-            return np.dtype(o["dt"]).type(o["__ns"])
-        return {k: _decode(v) for k, v in o.items()}
-    return o
-
-
-def state_dumps(state) -> bytes:
-    """Serialize a state object (plain data) to compact JSON bytes, exactly and deterministically."""
-    return json.dumps(_encode(state), separators=(",", ":"), allow_nan=True).encode("utf-8")
-
-
-def state_loads(data: bytes):
-    return _decode(json.loads(bytes(data).decode("utf-8")))
-
-
-class _State(dict):
-    """FMU state handed to the C++ side; remembers its owner for error reporting."""
-    __slots__ = ("owner",)
-
-
-class _InvalidState(dict):
-    """What ``_fmu_state_from_bytes`` returns for bytes it cannot decode (raising there cannot be
-    compensated: no instance is known); ``_set_fmu_state`` then fails cleanly."""
-    __slots__ = ()
-
-
-# ---------------------------------------------------------------------------------------------
-# variables
-# ---------------------------------------------------------------------------------------------
-class _Var:
-    __slots__ = (
-        "causality",
-        "check",
-        "codes",
-        "description",
-        "hi",
-        "index",
-        "key",
-        "lo",
-        "name",
-        "section",
-        "start",
-        "type",
-        "unit",
-        "variability",
-        "vr",
-    )
-
-    def __init__(self, **kw):
-        for k in self.__slots__:
-            setattr(self, k, kw.get(k))
-
-    def label(self):
-        return f"'{self.name}' (vr={self.vr})"
-
-
-_CHECK_TEXT = {"positive": "> 0", "nonneg": ">= 0", "positive_or_inf": "> 0 (or inf)",
-               "finite": "finite", "thresholds": "finite"}
-
-
-def _value_problem(var, v):
-    """Why ``v`` is not acceptable for ``var`` (``""`` if it is)."""
-    if var.type == "Integer":
-        if var.lo is not None and v < var.lo or var.hi is not None and v > var.hi:
-            codes = ""
-            if var.codes:
-                codes = " (" + ", ".join(f"{c} {n}" for n, c in var.codes.items()) + ")"
-            return f"must be an integer in [{var.lo}, {var.hi}]{codes}, got {v}"
-        return ""
-    if math.isnan(v):
-        return "is NaN"
-    check = var.check or "finite"
-    if check == "positive_or_inf":
-        return "" if v > 0 else f"must be > 0 (or inf), got {v!r}"
-    if v - v != 0.0:
-        return f"must be finite, got {v!r}"
-    if check == "positive" and not v > 0:
-        return f"must be > 0, got {v!r}"
-    if check == "nonneg" and not v >= 0:
-        return f"must be >= 0, got {v!r}"
-    return ""
+def _no_debt(slave):
+    return None
 
 
 def _guard(where):
@@ -231,7 +102,7 @@ def _guard(where):
 # ---------------------------------------------------------------------------------------------
 # the base class
 # ---------------------------------------------------------------------------------------------
-class SlaveBase(Fmi2Slave):
+class SlaveBase(NativeSlave, VariableRegistry, Fmi2Slave):
     """Base of the piezo-fmu slaves. Subclasses implement :meth:`define`, :meth:`make_unit`,
     :meth:`initialize`, :meth:`step` and :meth:`describe_outputs`; see the module docstring."""
 
@@ -241,18 +112,21 @@ class SlaveBase(Fmi2Slave):
     STATE_ATTRS = ()                 # further instance attributes that belong to the FMU state
     NEEDS_MODEL = True               # the slave builds a unit from the bundled model
     COMPILE = None                   # f(unit): switch a unit to the compiled engine (core.compiled.compile_unit)
+    RT_FAST = _RT_FAST
 
     # -- construction ------------------------------------------------------------------------
     def __init__(self, **kwargs):
         try:
             super().__init__(**kwargs)
-            self._in_wrapper = "logger" in kwargs     # the C++ wrapper passes logger=, Python does not
             self._model = self._load_model(kwargs.get("resources"))
-            wrapper_version = self._model.get("pythonfmu", pythonfmu.__version__)
-            self._fix_refs = self._in_wrapper and wrapper_version in _WRAPPERS_STEALING_REFS
+            self._error_hook = _no_debt
+            if "logger" in kwargs:     # pythonfmu's binary passes logger=; the native runtime does not
+                from pythonfmu_compat import install
+                self._error_hook = install(self, self._model.get("pythonfmu", pythonfmu.__version__))
+            self._rt_init()
             self._identity = f"{type(self).__name__}:{self._model.get('hash', '-')}"
-            self._vars = {}            # vr -> _Var
-            self._by_name = {}         # name -> _Var
+            self._vars = {}            # vr -> slavevars.Var
+            self._by_name = {}         # name -> slavevars.Var
             self._params = ()          # parameters in vr order
             self._list_keys = {}       # (section, key) -> number of elements (also 0)
             self._mode = INSTANTIATED
@@ -316,119 +190,6 @@ class SlaveBase(Fmi2Slave):
                 raise FmuUsageError(f"the bundled model is invalid: {problem}")
 
     # -- registration ------------------------------------------------------------------------
-    def _register(self, var, *, pyvar_cls):
-        if var.name in self._by_name:
-            raise ValueError(f"variable {var.name!r} registered twice")
-        if var.name.startswith("_") or var.name in self.__dict__:
-            raise ValueError(f"variable name {var.name!r} clashes with an attribute")
-        caus = getattr(Fmi2Causality, var.causality)
-        vari = getattr(Fmi2Variability, var.variability)
-        name = var.name
-        d = self.__dict__
-        d[name] = var.start if var.causality != "output" else (0 if var.type == "Integer" else 0.0)
-        pv = pyvar_cls(name, causality=caus, variability=vari, description=var.description,
-                       getter=functools.partial(d.__getitem__, name),
-                       setter=functools.partial(d.__setitem__, name))
-        self.register_variable(pv, nested=False)
-        var.vr = pv.value_reference
-        self._vars[var.vr] = var
-        self._by_name[name] = var
-        return var
-
-    def add_input(self, name, start, unit, description):
-        return self._register(_Var(name=name, type="Real", causality="input", variability="continuous",
-                                   unit=unit, description=description, start=float(start)),
-                              pyvar_cls=Real)
-
-    def add_output(self, name, unit, description):
-        return self._register(_Var(name=name, type="Real", causality="output", variability="continuous",
-                                   unit=unit, description=description), pyvar_cls=Real)
-
-    def add_parameter(self, name, start, unit, description, *, tunable, check="finite",
-                      integer=False, lo=None, hi=None, codes=None, section=None, key=None, index=None):
-        """A Real (or Integer) parameter. ``check`` is a SCHEMA constraint; ``codes`` maps labels to
-        the Integer codes (the model value is the label)."""
-        if section is None:
-            section, _, key = name.rpartition(".")
-        var = _Var(name=name, type="Integer" if integer else "Real", causality="parameter",
-                   variability="tunable" if tunable else "fixed", unit=None if integer else unit,
-                   description=description, check=check, lo=lo, hi=hi, codes=codes,
-                   start=int(start) if integer else float(start), section=section, key=key, index=index)
-        problem = _value_problem(var, var.start)
-        if problem:
-            raise FmuUsageError(f"start value of parameter '{name}' {problem}")
-        return self._register(var, pyvar_cls=Integer if integer else Real)
-
-    def add_model_parameters(self, sections, tunable=(), codes=None):
-        """Register every key of the given model sections as parameters.
-
-        ``sections``: ``{section: None | (key, ...)}`` (None: all keys of the section);
-        ``tunable``: names (a list key covers all its elements) that may change in step mode;
-        ``codes``: ``{"section.key": {label: code}}`` for string-valued keys (Integer parameters).
-        """
-        schema, values = self._model["schema"], self._model["sections"]
-        codes = codes or {}
-        tunable = frozenset(tunable)
-        for sec, keys in sections.items():
-            for key in (keys if keys is not None else schema[sec]):
-                spec = schema[sec][key]
-                name = f"{sec}.{key}"
-                value = values[sec][key]
-                doc = spec["doc"]
-                tun = name in tunable
-                kind = spec["kind"]
-                if kind == "float":
-                    self.add_parameter(name, value, spec["unit"], doc, tunable=tun, check=spec["check"],
-                                       section=sec, key=key)
-                elif kind == "floats":
-                    n = len(value)
-                    self._list_keys[(sec, key)] = n
-                    check = "finite" if spec["check"] == "thresholds" else spec["check"]
-                    for i, x in enumerate(value, 1):
-                        self.add_parameter(f"{name}[{i}]", x, spec["unit"], f"{doc} (element {i} of {n})",
-                                           tunable=tun, check=check, section=sec, key=key, index=i)
-                elif kind == "int":
-                    lo = 0 if spec["check"] == "nonneg" else -_INT_MAX - 1
-                    self.add_parameter(name, value, None, doc, tunable=tun, integer=True, lo=lo,
-                                       hi=_INT_MAX, section=sec, key=key)
-                elif kind == "str":
-                    cmap = codes[name]
-                    text = ", ".join(f"{c} {lab}" for lab, c in sorted(cmap.items(), key=lambda i: i[1]))
-                    self.add_parameter(name, cmap[value], None, f"{key} as an Integer code: {text}", tunable=tun,
-                                       integer=True, lo=min(cmap.values()), hi=max(cmap.values()),
-                                       codes=cmap, section=sec, key=key)
-                else:
-                    raise ValueError(f"{name}: unsupported schema kind {kind!r}")
-
-    def add_engine_parameter(self, engines):
-        """``simulation.engine``: run the unit's kernel interpreted (``python``, NumPy only) or
-        compiled by numba (``numba``: the slave's ``COMPILE(unit)``); ``engines`` maps the labels to
-        their Integer codes (``piezo_fmu.core.compiled.ENGINES``). A fixed parameter; the results
-        are the same bit for bit."""
-        codes = ", ".join(f"{c} {n}" for n, c in engines.items())
-        self.add_parameter("simulation.engine", engines["python"], None,
-                           f"kernel engine: {codes} (compiled: numba must be installed in the host's "
-                           "Python; the first instance in a process compiles for a few seconds; "
-                           "identical results, less time per step)", tunable=False, integer=True,
-                           lo=min(engines.values()), hi=max(engines.values()), codes=engines)
-
-    def model_sections(self):
-        """The parameters as a model ``sections`` dict (lists for list keys, labels for coded ints)."""
-        d = self.__dict__
-        out = {}
-        for (sec, key), n in self._list_keys.items():
-            out.setdefault(sec, {})[key] = [None] * n
-        for v in self._params:
-            value = d[v.name]
-            if v.codes:
-                value = next(lab for lab, c in v.codes.items() if c == value)
-            sec = out.setdefault(v.section, {})
-            if v.index is None:
-                sec[v.key] = value
-            else:
-                sec[v.key][v.index - 1] = value
-        return out
-
     # -- subclass hooks ----------------------------------------------------------------------
     def make_unit(self, sections):
         """Build the core unit from ``sections`` (raise ValueError for an invalid combination)."""
@@ -449,17 +210,12 @@ class SlaveBase(Fmi2Slave):
 
     # -- errors -----------------------------------------------------------------------------
     def _fail(self, msg):
-        """Log ``msg`` with status error, then raise (the wrapper returns fmi2Fatal).
-
-        Inside the pythonfmu 0.7.0 wrapper the exception makes the C++ side drop one reference to
-        the class, the instance and the log queue; they are paid in advance here, so the counts
-        stay balanced and the instance stays usable (any number of errors, then freeInstance).
-        """
+        """Log ``msg`` with status error, then raise :class:`FmuUsageError` (the native runtime
+        returns fmi2Error; under pythonfmu's binary the error hook of :mod:`pythonfmu_compat`
+        first pays the references that binary drops for an exception)."""
         msg = f"[{self.instance_name}] {msg}"
         self.log(msg, Fmi2Status.error)
-        if self._fix_refs:
-            for obj in (type(self), self, self.log_queue):
-                _incref(obj)
+        self._error_hook(self)
         raise FmuUsageError(msg)
 
     def _where(self):
@@ -470,6 +226,7 @@ class SlaveBase(Fmi2Slave):
         mode = _CANONICAL[mode]
         self._mode = mode
         self._rget, self._rset, self._iget, self._iset = self._tables[mode]
+        self._rt_publish()
 
     @_guard("setup_experiment")
     def setup_experiment(self, start_time, stop_time=None, tolerance=None):
@@ -689,7 +446,7 @@ class SlaveBase(Fmi2Slave):
                 if v - v != 0.0:
                     self._fail(f"{where}: non-finite value {v!r} for input {var.label()} {self._where()}")
             else:
-                problem = _value_problem(var, v)
+                problem = value_problem(var, v)
                 if problem:
                     self._fail(f"{where}: parameter {var.label()} {problem}")
             staged.append((var, v))
@@ -765,7 +522,7 @@ class SlaveBase(Fmi2Slave):
         if problem:
             self._fail(f"get_fmu_state: {problem}")
         d = self.__dict__
-        st = _State(format=STATE_FORMAT, identity=self._identity, mode=self._mode, time=self._time,
+        st = State(format=STATE_FORMAT, identity=self._identity, mode=self._mode, time=self._time,
                     start_time=self._start_time, stop_time=self._stop_time,
                     init_dirty=self._init_dirty, broken=self._broken,
                     vars={v.name: d[v.name] for v in self._vars.values()},
@@ -776,7 +533,7 @@ class SlaveBase(Fmi2Slave):
 
     @_guard("set_fmu_state")
     def _set_fmu_state(self, state):
-        if isinstance(state, _InvalidState):
+        if isinstance(state, InvalidState):
             self._fail(f"set_fmu_state: the serialized state could not be decoded: {state.get('error')}")
         if not isinstance(state, dict) or state.get("format") != STATE_FORMAT:
             self._fail("set_fmu_state: not an FMU state of this FMU (unknown format)")
@@ -816,6 +573,8 @@ class SlaveBase(Fmi2Slave):
 
     @staticmethod
     def _fmu_state_to_bytes(state):
+        """Serialization as pythonfmu's binary calls it (static; an error is reported on the
+        state's owner). The native runtime calls ``_rt_serialize`` on the instance instead."""
         try:
             return state_dumps(dict(state))
         except Exception as e:
@@ -829,51 +588,8 @@ class SlaveBase(Fmi2Slave):
     def _fmu_state_from_bytes(data):
         try:
             return state_loads(data)
-        except Exception as e:  # noqa: BLE001 - never raise here (no instance to compensate)
-            bad = _InvalidState()
+        except Exception as e:  # noqa: BLE001 - never raise here (no instance to report to)
+            bad = InvalidState()
             bad["error"] = f"{type(e).__name__}: {e}"
             return bad
 
-    # -- metadata for the build ---------------------------------------------------------------
-    def fmu_meta(self):
-        """Everything piezo_fmu.builder needs to post-process the modelDescription."""
-        variables = {}
-        for v in self._vars.values():
-            start = None
-            if v.causality != "output":
-                start = _xml_number(v.start)
-            lo = v.lo
-            if v.type == "Real" and v.causality == "parameter" and v.check in (
-                    "positive", "nonneg", "positive_or_inf"):
-                lo = 0.0
-            variables[v.name] = {
-                "type": v.type, "causality": v.causality, "variability": v.variability,
-                "unit": v.unit, "description": v.description, "start": start,
-                "min": None if lo is None else _xml_number(lo),
-                "max": None if v.hi is None else _xml_number(v.hi),
-                # outputs are computed in do_step / at initialization only: no direct feedthrough
-                "depends_on": [] if v.causality == "output" else None,
-                "init_depends_on": None,
-            }
-        return {
-            "model_name": type(self).__name__,
-            "description": type(self).description,
-            "default_experiment": self.DEFAULT_EXPERIMENT,
-            "can_get_set_state": True,
-            "can_serialize_state": True,
-            "variables": variables,
-        }
-
-
-def _xml_number(v):
-    """Exact xs:double / xs:int text (repr round-trips; XML spells infinity INF)."""
-    if isinstance(v, bool):
-        raise TypeError("bool is not a number here")
-    if isinstance(v, int):
-        return str(v)
-    v = float(v)
-    if v == _INF:
-        return "INF"
-    if v == -_INF:
-        return "-INF"
-    return repr(v)

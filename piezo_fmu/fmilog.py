@@ -12,21 +12,15 @@ So there is one logger here, kept alive for the life of the process, registered 
 each instantiation (fmpy registers its own default at import), and it dispatches every message to
 the listeners that want it. Listeners are held weakly, so a forgotten one costs nothing.
 
-The second process-global trap is pythonfmu's binary (0.7.0): it keeps the embedded interpreter's
-state in a static ``std::shared_ptr`` and resets it again from an ELF destructor
-(``finalizePythonInterpreter``) that runs at process exit *after* the C++ static destructors have
-already freed it: a write into freed memory for every pythonfmu FMU library still loaded (dlclose
-does not unload them). Depending on the heap's layout the process then aborts at exit
-("corrupted double-linked list", exit status 134) after a run that succeeded. At interpreter exit
-:func:`release_pythonfmu_libraries` calls that exported reset for every loaded pythonfmu library
-while its static is still alive, so the exit-time call finds it empty.
+The FMUs' native runtime (``fmu_src/runtime``) needs nothing else from the host: it starts or
+adopts the interpreter, never finalizes it, and is safe at any exit order (the exit-time
+workaround for pythonfmu's binary that used to live here is gone; a fallback FMU built with
+pythonfmu's binary carries its own, see ``fmu_src/pythonfmu_compat.py``).
 """
 from __future__ import annotations
 
-import atexit
 import ctypes
 import itertools
-import os
 import weakref
 
 from fmpy import calloc, free
@@ -37,7 +31,7 @@ from fmpy.fmi2 import (
     fmi2CallbackLoggerTYPE,
 )
 
-__all__ = ["callbacks", "listen", "unlisten", "release_pythonfmu_libraries"]
+__all__ = ["callbacks", "listen", "unlisten"]
 
 _listeners: dict = {}
 _tokens = itertools.count()
@@ -90,32 +84,3 @@ def listen(fn) -> int:
 
 def unlisten(token):
     _listeners.pop(token, None)
-
-
-def release_pythonfmu_libraries() -> int:
-    """Reset the interpreter-state holder of every loaded pythonfmu FMU library (see the module
-    docstring); returns how many. Only libraries already in the process are touched
-    (``RTLD_NOLOAD``); instances still alive keep their own reference, so this is safe at any
-    time, and it is what the library's exit handler would do if it ran in the right order."""
-    try:
-        with open("/proc/self/maps", encoding="utf-8", errors="replace") as f:
-            paths = {line.split(None, 5)[5].strip().removesuffix(" (deleted)")
-                     for line in f if line.count(" ") >= 5 and "/binaries/" in line}
-    except OSError:          # not Linux: the bug is in pythonfmu's Linux exit path only
-        return 0
-    done = 0
-    for path in sorted(p for p in paths if p.endswith(".so")):
-        try:
-            lib = ctypes.CDLL(path, mode=os.RTLD_NOLOAD | os.RTLD_LAZY)
-        except OSError:
-            continue
-        reset = getattr(lib, "finalizePythonInterpreter", None)
-        if reset is not None:
-            reset.restype = None
-            reset.argtypes = []
-            reset()
-            done += 1
-    return done
-
-
-atexit.register(release_pythonfmu_libraries)

@@ -5,8 +5,8 @@ Usage: python fuzz_fmus.py PATHS_JSON N_EXAMPLES SEED
 Every example instantiates one FMU and applies 20-120 random operations: real/integer sets on
 inputs and parameters with wild values (NaN, +-inf, +-1e308, negatives, zero), steps with good,
 zero, negative and odd step sizes, out-of-order mode calls, state save/restore, reset. The
-invariants: every call returns (no crash of this process), statuses are OK, discard or fatal,
-outputs read after an OK step are finite, and after the abuse a reset + re-initialisation gives
+invariants: every call returns (no crash of this process), statuses are OK or error (a refused
+call leaves the instance usable: never fatal), outputs read after an OK step are finite, and after the abuse a reset + re-initialisation gives
 an instance that steps normally with finite outputs. Prints one JSON summary line (prefix @@).
 """
 import json

@@ -158,18 +158,6 @@ def test_control_step_must_be_a_whole_number_of_steps(model):
     np.testing.assert_array_equal(a["x"], b["x"])
 
 
-def test_pythonfmu_exit_reset_finds_the_loaded_library_and_is_harmless(fmus, quiet):
-    """pythonfmu 0.7.0 writes into freed memory at process exit (see piezo_fmu.fmilog); the
-    workaround resets the state holder of every pythonfmu library still loaded. It finds at least
-    the one a co-simulation pins, and FMUs instantiate and run normally afterwards."""
-    from piezo_fmu import fmilog
-
-    first = cosimulate(fmus, sine(10), 0.01, H, model=quiet)
-    assert fmilog.release_pythonfmu_libraries() >= 1
-    again = cosimulate(fmus, sine(10), 0.01, H, model=quiet)
-    np.testing.assert_array_equal(first["x"], again["x"])
-
-
 def test_time_grid_has_no_drift(fmus, quiet):
     co = cosimulate(fmus, sine(10), 0.3, H, model=quiet, record_step=1e-3)
     k = np.arange(co["time"].size)
@@ -391,7 +379,7 @@ def test_a_failing_fmu_call_reports_the_fmus_message(fmus, model):
         run_component(fmus["Actuator"], "Actuator", {"uc": [0.0, 1.0]}, ("x",), H,
                       start_values={"amplifier.R": -1.0})
     msg = str(err.value)
-    assert "Actuator" in msg and "fmi2SetReal" in msg and "fatal" in msg
+    assert "Actuator" in msg and "fmi2SetReal" in msg and "(status error)" in msg    # not fatal
     assert "amplifier.R" in msg and "must be > 0" in msg      # the FMU's own logged message
     assert "\n" not in msg.split(": ", 1)[0]
 

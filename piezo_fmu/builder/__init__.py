@@ -15,8 +15,9 @@ For each FMU:
    schema (units, docs, constraints) go into ``resources/piezo_model.json``, from which the slave
    registers its parameters and builds its core unit at instantiation.
 2. **Staging** (:mod:`.staging`): ``fmu_src/<Name>.py`` plus one bundled package ``_pz_<name>_<hash>`` holding a copy
-   of ``piezo_fmu/core`` and ``fmu_src/slavebase.py`` (hash over their content), the script renamed
-   ``<Name>_<hash>.py``. Imports of ``slavebase`` and ``piezo_fmu.core`` are rewritten with
+   of ``piezo_fmu/core`` and the slave base (``fmu_src/slavebase.py`` and the modules it is split
+   into; hash over their content), the script renamed ``<Name>_<hash>.py``. Imports of those
+   modules and of ``piezo_fmu.core`` are rewritten with
    :mod:`ast` at their exact spans; any other import outside the standard library, NumPy, pythonfmu
    and the bundle fails the build. So FMUs built from different core versions load side by side.
 3. **pythonfmu build** in a subprocess (it imports the script and changes ``sys.path``), which also
@@ -26,6 +27,11 @@ For each FMU:
    Outputs + InitialUnknowns exactly as FMI 2.0 (and fmpy) require, DefaultExperiment,
    canGetAndSetFMUstate/canSerializeFMUstate (implemented by the base class), version; then a safe
    rewrite of the zip (new file beside the old, verified, fsync, atomic replace).
+4a. **Native runtime** (:mod:`.runtime`): ``binaries/linux64/<Name>.so`` becomes the project's own
+   FMI runtime (``fmu_src/runtime``, compiled once per build with the system C compiler against
+   this Python's headers), with ``piezo_fmu_bridge.so`` beside it and ``resources/piezo_runtime.cfg``
+   (the Python library, home and module path it starts Python with where the host has none).
+   Without a compiler or headers the build says so in one line and keeps pythonfmu's binary.
 5. **Checks** (:mod:`.checks`): the interface against :mod:`piezo_fmu.connections`, every model parameter present,
    ``fmpy.validation.validate_fmu`` with zero problems, and a default-experiment run of every FMU
    in a subprocess that cannot import ``piezo_fmu`` (so the FMUs are self-contained).

@@ -13,6 +13,7 @@ import time
 import zipfile
 from pathlib import Path
 
+from . import runtime as native
 from .checks import check_interface, smoke_run
 from .description import patch_model_description, rewrite_zip_member
 from .errors import BuildError
@@ -82,10 +83,18 @@ class BuildResult(dict):
     ssp = None
 
 
-def build_one(name: str, payload: dict, work: Path, log=print) -> Path:
-    """Stage, build, post-process and check one FMU in the work folder; returns its path there."""
+def build_one(name: str, payload: dict, work: Path, log=print, runtime="auto") -> Path:
+    """Stage, build, post-process and check one FMU in the work folder; returns its path there.
+
+    ``runtime``: the FMU's binary. ``"auto"`` compiles the native runtime into ``work/runtime``
+    (once) and falls back to pythonfmu's binary when that is impossible; a
+    :class:`~piezo_fmu.builder.runtime.RuntimeBinaries` is used as it is; ``None`` keeps
+    pythonfmu's binary.
+    """
     t0 = time.perf_counter()
-    log(f"{name}: staging fmu_src/{name}.py with piezo_fmu/core and slavebase")
+    if runtime == "auto":
+        runtime = native.compile_runtime(Path(work) / "runtime", log)
+    log(f"{name}: staging fmu_src/{name}.py with piezo_fmu/core and the slave base")
     st = stage(name, payload, work / "stage")
     log(f"{name}: pythonfmu build (module {st['module']}, bundle {st['package']})")
     fmu, meta = run_pythonfmu(st, work / "fmu")
@@ -104,7 +113,14 @@ def build_one(name: str, payload: dict, work: Path, log=print) -> Path:
     from .. import __version__
     version = (f"piezo-fmu {__version__}; core+slavebase {st['package'].rsplit('_', 1)[-1]}; "
                f"model {payload.get('model_name', '?')} {payload.get('hash', '')}")
-    rewrite_zip_member(fmu, "modelDescription.xml", patch_model_description(xml, meta, version))
+    new_xml = patch_model_description(xml, meta, version)
+    rewrite_zip_member(fmu, "modelDescription.xml", new_xml)
+    if runtime is not None:
+        from lxml import etree
+        root = etree.fromstring(new_xml)
+        ident = root.find("CoSimulation").get("modelIdentifier")
+        log(f"{name}: native FMI runtime as binaries/{native.PLATFORM_DIR}/{ident}.so")
+        native.install(fmu, runtime, ident, st["module"], name, root.get("guid"), rewrite_zip_member)
     log(f"{name}: checking the interface and validating with fmpy")
     problems = check_interface(name, fmu, payload)
     from fmpy.validation import validate_fmu
@@ -116,13 +132,16 @@ def build_one(name: str, payload: dict, work: Path, log=print) -> Path:
     return fmu
 
 
-def build_all(model_path=None, out_dir=DEFAULT_OUT, floor=False, ssp=True, log=print) -> BuildResult:
+def build_all(model_path=None, out_dir=DEFAULT_OUT, floor=False, ssp=True, log=print,
+              native_runtime=True) -> BuildResult:
     """Build the FMUs of ``model_path`` into ``out_dir``; returns ``{name: path}`` (and ``.ssp``).
 
     ``model_path``: the model file (default: the paper's, shipped with the package); ``out_dir``:
     the folder that receives the FMUs (default ``./models``, created); ``floor`` also builds
     PassThrough.fmu; ``ssp`` writes ``PiezoSystem.ssp`` of the three system FMUs
-    (:func:`piezo_fmu.ssp.write_system_ssp`).
+    (:func:`piezo_fmu.ssp.write_system_ssp`). ``native_runtime``: the FMUs' binary is the
+    project's C runtime (:mod:`.runtime`; pythonfmu's when it cannot be compiled, said in one
+    line); ``False`` keeps pythonfmu's.
 
     Raises :class:`BuildError` (or :class:`piezo_fmu.model.ModelError`) on any problem; FMUs that
     were not all checked never reach ``out_dir``.
@@ -139,7 +158,8 @@ def build_all(model_path=None, out_dir=DEFAULT_OUT, floor=False, ssp=True, log=p
         f"into {out_dir}")
     work = Path(tempfile.mkdtemp(prefix="piezo_fmu_build_"))
     try:
-        built = {name: build_one(name, payload, work, log) for name in names}
+        runtime = native.compile_runtime(work / "runtime", log) if native_runtime else None
+        built = {name: build_one(name, payload, work, log, runtime) for name in names}
         log("running the default experiment of each FMU (fmpy, without piezo_fmu importable)")
         smoke = smoke_run(built.values())
         for name, path in built.items():

@@ -1,5 +1,6 @@
 """Staging an FMU's Python sources: the slave script with a uniquely named bundle of
-:mod:`piezo_fmu.core` and ``slavebase``, imports rewritten with :mod:`ast` at their exact spans.
+:mod:`piezo_fmu.core` and the slave base (``slavebase`` and the modules it is split into,
+:data:`BUNDLED`), imports rewritten with :mod:`ast` at their exact spans.
 
 The sources come from the installed package (``piezo_fmu.fmu_src``, which is the repository's
 top-level ``fmu_src/`` mapped into the package by ``pyproject.toml``; one source of truth), so a
@@ -18,12 +19,15 @@ from pathlib import Path
 
 from .errors import BuildError
 
-__all__ = ["CLASS_RE", "CORE_DIR", "FMU_SRC", "MODEL_JSON", "SLAVEBASE", "StageError", "imported_top_levels",
-           "rewrite_imports", "stage", "tree_hash"]
+__all__ = ["BUNDLED", "CLASS_RE", "CORE_DIR", "FMU_SRC", "MODEL_JSON", "SLAVEBASE", "StageError",
+           "imported_top_levels", "rewrite_imports", "stage", "tree_hash"]
 
 FMU_SRC = Path(str(files("piezo_fmu.fmu_src")))
 CORE_DIR = Path(str(files("piezo_fmu.core")))
 SLAVEBASE = FMU_SRC / "slavebase.py"
+# the slave base and the modules it is split into (each imports the others by their plain names)
+BUNDLED = tuple(FMU_SRC / f"{m}.py" for m in ("slavebase", "slavevars", "statecodec", "nativeslave",
+                                               "pythonfmu_compat"))
 MODEL_JSON = "piezo_model.json"          # must equal slavebase.MODEL_JSON
 
 # the regex the pythonfmu C++ wrapper applies to the staged script to find the class
@@ -121,18 +125,24 @@ def stage(name: str, payload: dict, stage_root: Path) -> dict:
     classes = CLASS_RE.findall(text)
     if classes != [name]:
         raise StageError(f"{script}: needs exactly one line 'class {name}(Fmi2Slave):', found {classes}")
-    pkg = f"_pz_{name.lower()}_{tree_hash([CORE_DIR, SLAVEBASE])[:10]}"
+    pkg = f"_pz_{name.lower()}_{tree_hash([CORE_DIR, *BUNDLED])[:10]}"
     sdir = stage_root / name
     if sdir.exists():
         shutil.rmtree(sdir)
     (sdir / pkg).mkdir(parents=True)
     (sdir / pkg / "__init__.py").write_text(
-        f'"""piezo-fmu bundle of {name}.fmu: piezo_fmu.core and slavebase (imports rewritten)."""\n')
+        f'"""piezo-fmu bundle of {name}.fmu: piezo_fmu.core and the slave base (imports rewritten)."""\n')
     shutil.copytree(CORE_DIR, sdir / pkg / "core", ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
-    shutil.copy2(SLAVEBASE, sdir / pkg / "slavebase.py")
-    new_text = text
-    for old, new in (("slavebase", f"{pkg}.slavebase"), ("piezo_fmu.core", f"{pkg}.core")):
-        new_text = rewrite_imports(new_text, old, new, str(script))
+    renames = [(src.stem, f"{pkg}.{src.stem}") for src in BUNDLED] + [("piezo_fmu.core", f"{pkg}.core")]
+
+    def rewritten(source, filename):
+        for old, new in renames:
+            source = rewrite_imports(source, old, new, filename)
+        return source
+
+    for src in BUNDLED:
+        (sdir / pkg / src.name).write_text(rewritten(src.read_text(encoding="utf-8"), str(src)), encoding="utf-8")
+    new_text = rewritten(text, str(script))
     if CLASS_RE.findall(new_text) != [name]:
         raise StageError(f"{script}: the class line was lost while rewriting imports")
     module = f"{name}_{hashlib.sha256((new_text + pkg).encode()).hexdigest()[:10]}"
