@@ -166,6 +166,8 @@ def choose_kinds(rng: np.random.Generator, required: list[str], max_time: float)
         kinds.append(extra)
     if len(kinds) < 2:
         kinds.append("rest")
+    if all(k == "rest" for k in kinds):             # something must move the stack
+        kinds[0] = pool[int(rng.integers(len(pool) - 1))]
     rng.shuffle(kinds)
     return kinds
 

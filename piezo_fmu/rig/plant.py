@@ -68,7 +68,8 @@ class Plant:
     pickoff : str
         ``"force"`` (quartz, ``us = g_us F``) or ``"displacement"`` (``us = g_us x``).
     g_us : float
-        Sensor gain [V/N] or [V/um].
+        Sensor gain [V/N] (quartz, ~2.3 mV/N) or [V/um] (a strain-gauge type pick-off,
+        ~0.05 V/um).
     g_x : float
         Probe gain [1].
     off_x, off_us : float
