@@ -8,7 +8,7 @@ from slavebase import SlaveBase as Fmi2Slave
 
 from piezo_fmu.core import units
 from piezo_fmu.core.compiled import ENGINES, compile_unit
-from piezo_fmu.core.plant import PICKOFFS
+from piezo_fmu.core.plant import PICKOFFS, RESONANCE_AT
 
 
 class Actuator(Fmi2Slave):
@@ -28,7 +28,7 @@ class Actuator(Fmi2Slave):
                "amplifier.I_max", "hysteresis.scale", "hysteresis.weights", "hysteresis.saturation",
                "drift.offset", "drift.rate", "drift.curvature", "simulation.actuator_max_step")
     CHECK = staticmethod(units.check_sections)   # the same consistency rules as model files
-    CODES = {"mechanics.pickoff": PICKOFFS}
+    CODES = {"mechanics.pickoff": PICKOFFS, "resonance.position": RESONANCE_AT}
 
     def define(self):
         self.add_input("uc", 3.0, "V", "amplifier command voltage")

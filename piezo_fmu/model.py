@@ -104,6 +104,10 @@ SCHEMA = {
     "resonance": {
         "f_n": _f("Hz", "nonneg", "natural frequency of a further mode in series (0: none)", 0.0),
         "zeta": _f("1", "positive", "damping ratio of that mode", 0.05),
+        "position": Spec("1", "str", doc="where that mode acts: output (after the mechanics, on the "
+                                          "displacement) | drive (on the free stroke before the mechanics: "
+                                          "in the displacement and in every sensed force)",
+                         default="output", choices=("output", "drive")),
     },
     "drift": {
         "offset": _f("um", "finite", "displacement offset at t = 0", 0.0),

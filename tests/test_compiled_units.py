@@ -38,6 +38,8 @@ ACTUATORS = {
                    "amplifier.tau_2": 2e-4, "mechanics.pickoff": "load"},
     "one creep element": {"creep.gains": [0.03], "creep.time_constants": [0.05]},
     "contact pick-off": {"mechanics.pickoff": "contact", "amplifier.tau_2": 1e-4, "resonance.f_n": 900.0},
+    "mode on the drive": {"resonance.f_n": 700.0, "resonance.position": "drive", "creep.gains": [0.05],
+                          "creep.time_constants": [0.2]},
 }
 
 

@@ -226,7 +226,8 @@ def test_interface_matches_connections_and_model(built_fmus):
                         assert v.type == "Integer" and int(v.start) == {
                             "mode": {"open": 0, "ff": 1, "fb": 2, "ff+fb": 3},
                             "inverse": {"static": 0, "dynamic": 1},
-                            "pickoff": {"stack": 0, "load": 1, "contact": 2}}[key][x]
+                            "pickoff": {"stack": 0, "load": 1, "contact": 2},
+                            "position": {"output": 0, "drive": 1}}[key][x]
                     elif spec.kind == "int":
                         assert v.type == "Integer" and int(v.start) == x
                     else:

@@ -180,6 +180,25 @@ def test_pickoffs_sense_the_spring_or_the_contact_force():
         assert act.F == pytest.approx(ref.F - me["k_a"] * 1e-6 * (act.x - 0.3 * act.time), rel=1e-9, abs=1e-12)
 
 
+def test_a_mode_on_the_drive_shows_in_the_stack_force():
+    """resonance.position = drive: the further mode shapes the free stroke, so the stack force rings
+    at f_n after a step; on the output it stays in the displacement."""
+    model = load_model()
+    out = {}
+    for pos in ("output", "drive"):
+        m = model.copy()
+        m.sections["resonance"].update(f_n=400.0, zeta=0.02, position=pos)
+        act = make_actuator(m)
+        F = np.array([(act.advance(3.0, 1e-4), act.F)[1] for _ in range(600)])
+        out[pos] = F
+    settled = out["output"][-1]
+    assert np.max(np.abs(out["output"][300:] - settled)) < 1e-6 * abs(settled)      # the lag settling
+    tail = out["drive"][100:] - out["drive"][-1]
+    crossings = np.nonzero(np.diff(np.sign(tail)) != 0)[0]
+    assert np.max(np.abs(tail)) > 1e-3 * abs(settled)
+    assert 2 * np.mean(np.diff(crossings)) * 1e-4 == pytest.approx(1 / 400.0, rel=0.03)
+
+
 def test_sensor_lag_delays_the_voltage_by_whole_steps():
     """sensor.lag: the output is the noise-free voltage of lag/h steps before plus this step's noise."""
     kw = dict(d11=2.31e-12, thickness=1e-3, eps_r=4.5, area=9.3e-5, C_load=1e-9, tau_leak=0.2,

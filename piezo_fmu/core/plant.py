@@ -17,7 +17,9 @@ Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made 
   paper, optionally saturating at high field: ``x_h / (1 + |x_h| / y_sat)``); the generated
   force on the push rod is ``F_out = k_a x_h`` (eq. 5: ``k_a n d33 ua`` in the linear case).
 * Mechanics (eq. 4): ``m x'' + c x' + (k_a + k_f) x = F_out``, optionally followed by a further
-  mechanical mode (``extra_resonance``); solved exactly for an input interpolated linearly
+  mechanical mode (``extra_resonance``; or that mode on the drive, before the mechanics, where
+  every pick-off of the sensor sees it: ``resonance_at = "drive"``); solved exactly for an input
+  interpolated linearly
   over the step.
 * Creep (beyond the paper): ``x_free = (1 + sum_j g_j / (tau_j s + 1)) x_h``.
 * Sensor (eq. 3): the quartz charge ``q = d11 F`` on ``C_s + C_load`` gives
@@ -45,10 +47,12 @@ from .linear import LinearSystem, as_floats, lti_advance, same_step
 EPS0 = 8.8541878128e-12  # vacuum permittivity [F/m]
 
 __all__ = ["amp_step", "actuator_step", "Actuator", "Sensor",
-           "sensor_step", "EPS0", "PICKOFFS"]
+           "sensor_step", "EPS0", "PICKOFFS", "RESONANCE_AT"]
 
 # what the quartz wafer's force is (mechanics.pickoff), as the FMUs' Integer codes
 PICKOFFS = {"stack": 0, "load": 1, "contact": 2}
+# where the further mode acts (resonance.position), as the FMUs' Integer codes
+RESONANCE_AT = {"output": 0, "drive": 1}
 
 
 def amp_step(ua, target, tau, slew, h, decay):
@@ -138,6 +142,8 @@ class Actuator:
     pickoff : the force output ``F``: ``"stack"`` (F_out = k_a x_free), ``"contact"`` (k_a (x_free - x))
     or ``"load"`` (k_f x);
     resonance : optional ``(f_n [Hz], zeta [1])`` of a further mode in series (unity DC gain);
+    resonance_at : where that mode acts: ``"output"`` (after the mechanics, on x) or ``"drive"``
+    (on the free stroke, before the mechanics: in x and in every sensed force);
     drift : polynomial coefficients of an additive drift [um, um/s, ...].
     max_step : largest internal step [s]; a communication step is split into equal sub-steps.
 
@@ -146,7 +152,7 @@ class Actuator:
 
     def __init__(self, *, k_amp, R, C_a, u_min, u_max, hysteresis: PrandtlIshlinskii,
                  m, c, k_a, k_f, saturation=math.inf, I_max=math.inf, delay=0.0, creep_gains=(), creep_taus=(),
-                 resonance=None, drift=(), max_step=1e-4, tau_2=0.0, pickoff="stack"):
+                 resonance=None, drift=(), max_step=1e-4, tau_2=0.0, pickoff="stack", resonance_at="output"):
         self.k_amp, self.R, self.C_a = float(k_amp), float(R), float(C_a)
         self.u_min, self.u_max, self.I_max = float(u_min), float(u_max), float(I_max)
         self.delay = float(delay)
@@ -174,7 +180,13 @@ class Actuator:
         self.creep = LinearSystem(*creep_tf(self.creep_gains, self.creep_taus))
         self.k_force = self.k_a * 1e-6
         self.frc = [self.k_force, float(PICKOFFS[pickoff]), self.k_f * 1e-6]
-        self.mech = LinearSystem(*mechanics_tf(self.m, self.c, self.k_a, self.k_f, self.resonance))
+        if resonance_at not in RESONANCE_AT:
+            raise ValueError(f"resonance_at {resonance_at!r}: expected one of {', '.join(RESONANCE_AT)}")
+        self.resonance_at = resonance_at
+        drive = self.resonance is not None and resonance_at == "drive"
+        if drive:          # the mode shapes the free stroke: it joins the creep block
+            self.creep = LinearSystem(*series_tf(creep_tf(self.creep_gains, self.creep_taus), mode_tf(*self.resonance)))
+        self.mech = LinearSystem(*mechanics_tf(self.m, self.c, self.k_a, self.k_f, None if drive else self.resonance))
         self.out = [0.0, 0.0, 0.0, 0.0]
         self._h = None
         self._adv_step = None
@@ -332,6 +344,17 @@ def creep_tf(gains, taus):
         num = np.polyadd(np.polymul(num, [tau, 1.0]), g * den)
         den = np.polymul(den, [tau, 1.0])
     return num, den
+
+
+def mode_tf(f_n, zeta):
+    """A mode of unity DC gain: ``wn^2 / (s^2 + 2 zeta wn s + wn^2)``."""
+    wn = 2.0 * math.pi * f_n
+    return np.array([wn * wn]), np.array([1.0, 2.0 * zeta * wn, wn * wn])
+
+
+def series_tf(a, b):
+    """Two transfer functions ``(num, den)`` in series."""
+    return np.polymul(a[0], b[0]), np.polymul(a[1], b[1])
 
 
 def mechanics_tf(m, c, k_a, k_f, resonance=None):

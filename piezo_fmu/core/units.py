@@ -85,7 +85,7 @@ def actuator_from(sections) -> Actuator:
     act = Actuator(
         k_amp=a["k_amp"], R=a["R"], C_a=a["C_a"], u_min=a["u_min"], u_max=a["u_max"],
         I_max=a.get("I_max", float("inf")), delay=a.get("delay", 0.0), tau_2=a.get("tau_2", 0.0),
-        pickoff=me.get("pickoff", "stack"),
+        pickoff=me.get("pickoff", "stack"), resonance_at=res.get("position", "output"),
         hysteresis=hysteresis_from(sections),
         saturation=sections["hysteresis"].get("saturation", float("inf")),
         m=me["m"], c=me["c"], k_a=me["k_a"], k_f=me["k_f"],
