@@ -5,7 +5,7 @@
  * lines "key value..." with doubles in C99 hex ("%a", exact), and a final "status ok" line; any
  * failing FMI call prints "fail <function> <status>" and exits 3.
  *
- *   fmi2_host [--preload LIBPYTHON] COMMAND ARGS...
+ *   fmi2_host [--preload LIBPYTHON] [--int MODELID:VR=VALUE]... COMMAND ARGS...
  *
  *   run FMU START STOP STEP OUT_VRS [IN_VR WAVE]      one instance, fixed steps; outputs after
  *                                                      initialization and after every step; with
@@ -16,7 +16,12 @@
  *   loop ACT SEN COM STOP STEP                         the closed loop, Gauss-Seidel (piezo_fmu.cosim's order)
  *   bench FMU N                                        us per fmi2DoStep (+ set/get) on this thread and on another
  *   bench-loop ACT SEN COM N STEP                      us per communication step of the closed loop
+ *   orders ACT SEN COM                                 instances of three FMUs freed and libraries closed
+ *                                                      in mixed orders, one reopened; exits with some alive
  *
+ * --preload loads a Python library (RTLD_GLOBAL, not started) before any FMU: a host that brought
+ * its own. --int sets an Integer (e.g. simulation.engine) of every instance of that FMU before
+ * initialization.
  * FMU is "DIR:MODELIDENTIFIER:GUID" of an extracted FMU; OUT_VRS is a comma-separated list of
  * value references. WAVE 1: 6 + 6 sin(2 pi 40 t) + 2 sin(2 pi 230 t), WAVE 2: 300 (1 + sin(2 pi 25 t)).
  */
@@ -53,11 +58,18 @@ typedef struct {
     fmi2Status (*exit_init)(fmi2Component);
     fmi2Status (*terminate)(fmi2Component);
     fmi2Status (*set_real)(fmi2Component, const fmi2ValueReference *, size_t, const double *);
+    fmi2Status (*set_integer)(fmi2Component, const fmi2ValueReference *, size_t, const int *);
     fmi2Status (*get_real)(fmi2Component, const fmi2ValueReference *, size_t, double *);
     fmi2Status (*do_step)(fmi2Component, double, double, int);
 } fmu_t;
 
 static int n_errors;   /* messages logged with fmi2Error or worse */
+static struct {
+    char id[256];
+    fmi2ValueReference vr;
+    int value;
+} ints[8];             /* --int */
+static int n_ints;
 
 static void logger(void *env, const char *name, fmi2Status status, const char *category, const char *message, ...)
 {
@@ -111,6 +123,7 @@ static void load(fmu_t *f, const char *spec)
     *(void **)&f->exit_init = sym(f, "fmi2ExitInitializationMode");
     *(void **)&f->terminate = sym(f, "fmi2Terminate");
     *(void **)&f->set_real = sym(f, "fmi2SetReal");
+    *(void **)&f->set_integer = sym(f, "fmi2SetInteger");
     *(void **)&f->get_real = sym(f, "fmi2GetReal");
     *(void **)&f->do_step = sym(f, "fmi2DoStep");
 }
@@ -123,13 +136,22 @@ static void check(fmi2Status st, const char *what)
     }
 }
 
-static fmi2Component make(fmu_t *f, const char *name, double start, double stop)
+static fmi2Component instantiate(fmu_t *f, const char *name)
 {
     fmi2Component c = f->instantiate(name, 1, f->guid, f->uri, &CALLBACKS, 0, 0);
     if (!c) {
         printf("fail fmi2Instantiate NULL\n");
         exit(3);
     }
+    for (int i = 0; i < n_ints; i++)
+        if (strcmp(ints[i].id, f->id) == 0)
+            check(f->set_integer(c, &ints[i].vr, 1, &ints[i].value), "fmi2SetInteger");
+    return c;
+}
+
+static fmi2Component make(fmu_t *f, const char *name, double start, double stop)
+{
+    fmi2Component c = instantiate(f, name);
     check(f->setup(c, 0, 0.0, start, 1, stop), "fmi2SetupExperiment");
     check(f->enter(c), "fmi2EnterInitializationMode");
     check(f->exit_init(c), "fmi2ExitInitializationMode");
@@ -337,11 +359,7 @@ static void loop_init(loop_t *L, char **argv, double stop)
     fmi2Component *cs[3] = {&L->a, &L->s, &L->c};
     const char *names[3] = {"Actuator", "Sensor", "Compensator"};
     for (int i = 0; i < 3; i++) {
-        *cs[i] = fs[i]->instantiate(names[i], 1, fs[i]->guid, fs[i]->uri, &CALLBACKS, 0, 0);
-        if (!*cs[i]) {
-            printf("fail fmi2Instantiate %s\n", names[i]);
-            exit(3);
-        }
+        *cs[i] = instantiate(fs[i], names[i]);
         check(fs[i]->setup(*cs[i], 0, 0.0, 0.0, 1, stop), "fmi2SetupExperiment");
         check(fs[i]->enter(*cs[i]), "fmi2EnterInitializationMode");
     }
@@ -477,17 +495,71 @@ static int cmd_bench(int argc, char **argv)
     return 0;
 }
 
+/* -- orders: free and dlclose in mixed orders, reopen, exit with instances alive ----------------- */
+
+static void steps(fmu_t *f, fmi2Component c, int n, long *k)
+{
+    for (int i = 0; i < n; i++, (*k)++)
+        check(f->do_step(c, *k * 1e-4, 1e-4, 1), "fmi2DoStep");
+}
+
+static int cmd_orders(int argc, char **argv)
+{
+    if (argc < 3)
+        return 2;
+    fmu_t act, sen, com, act2;
+    load(&act, argv[0]);
+    load(&sen, argv[1]);
+    fmi2Component a1 = make(&act, "a1", 0.0, 1.0), a2 = make(&act, "a2", 0.0, 1.0);
+    fmi2Component s1 = make(&sen, "s1", 0.0, 1.0);
+    load(&com, argv[2]);
+    fmi2Component c1 = make(&com, "c1", 0.0, 1.0);
+    long ka = 0, ka2 = 0, ks = 0, kc = 0;
+    steps(&act, a1, 5, &ka);
+    steps(&act, a2, 5, &ka2);
+    steps(&sen, s1, 5, &ks);
+    steps(&com, c1, 5, &kc);
+    act.free_instance(a2);                 /* the second instance first */
+    act.free_instance(a1);
+    dlclose(act.lib);                      /* the FMU that started Python is gone ... */
+    steps(&sen, s1, 5, &ks);               /* ... the others go on */
+    steps(&com, c1, 5, &kc);
+    load(&act2, argv[0]);                  /* reopened: a fresh copy of the FMI layer */
+    fmi2Component a3 = make(&act2, "a3", 0.0, 1.0);
+    long k3 = 0;
+    steps(&act2, a3, 5, &k3);
+    com.free_instance(c1);
+    dlclose(com.lib);
+    steps(&sen, s1, 5, &ks);
+    steps(&act2, a3, 5, &k3);
+    printf("orders ok\n");                 /* exit with a3 and s1 alive and their libraries open */
+    return 0;
+}
+
 int main(int argc, char **argv)
 {
     setvbuf(stdout, NULL, _IOFBF, 1 << 16);
     int i = 1;
-    if (argc > 2 && strcmp(argv[1], "--preload") == 0) {
-        /* a host that brought its own Python library (not started): the runtime must use it */
-        if (!dlopen(argv[2], RTLD_NOW | RTLD_GLOBAL)) {
-            printf("fail preload %s\n", dlerror());
-            return 3;
+    while (i + 1 < argc && argv[i][0] == '-') {
+        if (strcmp(argv[i], "--preload") == 0) {
+            /* a host that brought its own Python library (not started): the runtime must use it */
+            if (!dlopen(argv[i + 1], RTLD_NOW | RTLD_GLOBAL)) {
+                printf("fail preload %s\n", dlerror());
+                return 3;
+            }
+        } else if (strcmp(argv[i], "--int") == 0 && n_ints < 8) {
+            char id[256];
+            unsigned vr;
+            int value;
+            if (sscanf(argv[i + 1], "%255[^:]:%u=%d", id, &vr, &value) != 3)
+                return 2;
+            snprintf(ints[n_ints].id, sizeof ints[n_ints].id, "%s", id);
+            ints[n_ints].vr = vr;
+            ints[n_ints++].value = value;
+        } else {
+            return 2;
         }
-        i = 3;
+        i += 2;
     }
     if (i >= argc)
         return 2;
@@ -502,6 +574,7 @@ int main(int argc, char **argv)
     else if (strcmp(cmd, "loop") == 0) rc = cmd_loop(n, rest);
     else if (strcmp(cmd, "bench") == 0) rc = cmd_bench(n, rest);
     else if (strcmp(cmd, "bench-loop") == 0) rc = cmd_bench_loop(n, rest);
+    else if (strcmp(cmd, "orders") == 0) rc = cmd_orders(n, rest);
     if (rc == 0)
         printf("errors %d\nstatus ok\n", n_errors);
     else if (rc == 2)
