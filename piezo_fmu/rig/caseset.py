@@ -287,7 +287,7 @@ def _draw_plant(rng, spec: CaseSpec, fs: float, names) -> Plant:
     tau = _loguniform(rng, 0.2e-3, 3e-3)
     tau2 = tau * float(rng.uniform(0.15, 0.6)) if rng.random() < 0.4 else 0.0
     chans = ["x", "us"] if spec.channels == "both" else [spec.channels]
-    lag = chans[rng.integers(len(chans))] if rng.random() < 0.15 else None
+    lag = chans[rng.integers(len(chans))] if rng.random() < 0.1 and fs >= 1000.0 else None
     u = lambda: float(rng.uniform(0.7, 1.3))   # noqa: E731 - the +-30 % spread
     plant = Plant(
         fs=fs, oversample=max(1, int(np.ceil(40000.0 / fs))),

@@ -304,21 +304,9 @@ class Simulator:
             store[key] = fn()
         return store[key]
 
-    def _ua(self, td, cl):
-        plant = self.plant
-        u_int = np.repeat(self.u, plant.oversample)
-        if td is not None:
-            d = int(td["steps_internal"])
-            if d > 0:
-                u_int = np.concatenate([np.full(d, u_int[0]), u_int[:-d]])
-        return amplifier(u_int, plant, None if cl is None else cl["I_max"] / plant.C_a)
-
-    def _xh(self, ua, hs):
-        hyst = self.plant.hysteresis
-        H = hyst.base(ua)
-        if hs is not None:
-            H = H + replace(hyst, shape_amplitude=hs["amplitude"]).feature(ua, H)
-        return self.plant.d_eff * H
+    def _ua(self, cl):
+        u_int = np.repeat(self.u, self.plant.oversample)
+        return amplifier(u_int, self.plant, None if cl is None else cl["I_max"] / self.plant.C_a)
 
     def run(self, effects: Effects, first_mode: bool = True) -> dict:
         """Noise-free channels at the recording rate.
@@ -337,21 +325,39 @@ class Simulator:
             sampling lag and quantisation), ``ua`` [V] and ``x_h`` [um] (hysteresis output) at
             the recording samples, ``ua_int`` [V] on the internal grid, ``slew_peak`` [V/s]
             (largest |dua/dt|).
+
+        Notes
+        -----
+        Everything from the amplifier to the mechanics is time-invariant and starts at rest on
+        a constant command, so the command latency is applied as a shift of that chain's
+        outputs: the same numbers as delaying the command, without recomputing the chain.
+        The shape feature and the creep are linear in their size, so they are kept per unit
+        size.
         """
         plant = self.plant
         M = plant.oversample
         dt = plant.dt_int
         n = self.u.size
         g = effects.get
-        k_ua = _key(g("time_delay"), g("amplifier_current_limit"))
-        ua = self._memo("ua", k_ua, lambda: self._ua(g("time_delay"), g("amplifier_current_limit")))
-        k_xh = k_ua + _key(g("hysteresis_shape"))
-        x_h = self._memo("xh", k_xh, lambda: self._xh(ua, g("hysteresis_shape")))
-        k_xc = k_xh + _key(g("creep"))
+        cl = g("amplifier_current_limit")
+        k_ua = _key(cl)
+        ua = self._memo("ua", k_ua, lambda: self._ua(cl))
+        hyst = plant.hysteresis
+        H = self._memo("H", k_ua, lambda: hyst.base(ua))
+        hs = g("hysteresis_shape")
+        x_h = plant.d_eff * H
+        if hs is not None:
+            unit = self._memo("feature", k_ua + (hyst.shape,),
+                              lambda: replace(hyst, shape_amplitude=1.0).feature(ua, H))
+            x_h = x_h + plant.d_eff * hs["amplitude"] * unit
+        k_xh = k_ua + _key(hs)
         cr = g("creep")
-        x_c = x_h if cr is None else self._memo(
-            "xc", k_xc, lambda: log_creep(x_h, cr["gamma"], cr["t0"], dt))
-        k_xf = k_xc + _key(g("extra_resonance"))
+        x_c = x_h
+        if cr is not None:
+            crept = self._memo("creep", k_xh + (cr["t0"],),
+                               lambda: log_creep(x_h, 1.0, cr["t0"], dt) - x_h)
+            x_c = x_h + cr["gamma"] * crept
+        k_xf = k_xh + _key(cr, g("extra_resonance"))
         er = g("extra_resonance")
         x_f = x_c if er is None else self._memo(
             "xf", k_xf, lambda: second_order(x_c, er["f"], er["zeta"], dt))
@@ -360,6 +366,11 @@ class Simulator:
             x = self._memo("x", k_xf, lambda: second_order(x_f, plant.f1, plant.zeta1, dt, gain=kappa))
         else:
             x = kappa * x_f
+        td = g("time_delay")
+        d = int(td["steps_internal"]) if td is not None else 0
+        if d > 0:
+            shift = lambda y: np.concatenate([np.full(d, y[0]), y[:-d]])   # noqa: E731
+            ua, x_h, x_f, x = shift(ua), shift(x_h), shift(x_f), shift(x)
         sl = slice(0, n * M, M)
         t = np.arange(n) / plant.fs
         td_ = g("thermal_drift")
