@@ -318,6 +318,19 @@ def _rate_and_duration(rng, spec: CaseSpec, kinds, names):
     return fs, duration
 
 
+def _unit_noise(spec: CaseSpec, attempt: int, n: int, ar: float) -> dict:
+    """The case's noise sequences at unit rms (scaled by each channel's sigma when used)."""
+    rng = np.random.default_rng([spec.seed, attempt, 99])
+    return {ch: noise(rng, n, 1.0, ar) for ch in ("x", "us")}
+
+
+def _quantisation_visibility(x: np.ndarray, nz: np.ndarray, step: float, sigma: float) -> float:
+    """rms of (quantised - unquantised) noisy probe signal, mean removed, over the noise rms."""
+    y = x + nz
+    d = quantise(y, step) - y
+    return float(np.std(d) / sigma)
+
+
 def _fail(why: list | None, reason: str) -> None:
     if why is not None:
         why.append(reason)
@@ -335,6 +348,7 @@ def _attempt(spec: CaseSpec, attempt: int, why: list | None = None) -> RigRecord
     fs, duration = _rate_and_duration(rng, spec, kinds, names)
     plant = _draw_plant(rng, spec, fs, names)
     u, segments = programme(rng, fs, duration, kinds, 0.0, plant.u_lo, plant.u_hi)
+    unit_noise = _unit_noise(spec, attempt, u.size, plant.noise_colour)
     sim = Simulator(plant, u)
     nominal = sim.run(Effects())
     base_fit = _base_fit(plant, nominal, channels)
@@ -370,8 +384,9 @@ def _attempt(spec: CaseSpec, attempt: int, why: list | None = None) -> RigRecord
         full = sim.run(eff)
         vis, aff, shape_fit = {}, {}, None
         for e in eff.items:
-            if e == "probe_quantisation":     # acts on the noisy samples: error rms step/sqrt(12)
-                q = eff.items[e]["step"] / np.sqrt(12.0) / plant.sigma_x
+            if e == "probe_quantisation":     # acts on the noisy samples
+                q = _quantisation_visibility(full["x"], plant.sigma_x * unit_noise["x"],
+                                             eff.items[e]["step"], plant.sigma_x)
                 vis[e], aff[e] = {"x": q}, {"x": q}
                 continue
             vis[e], aff[e] = visibility(full, sim.run(eff.without(e)), plant, channels)
@@ -422,17 +437,13 @@ def _finish(spec, attempt, sim, segments, eff, full, vis, aff, channels, shape_f
             base_fit, dropped) -> RigRecording:
     plant, u = sim.plant, sim.u
     n = u.size
-    rng = np.random.default_rng([spec.seed, attempt, 99])
+    unit_noise = _unit_noise(spec, attempt, n, plant.noise_colour)
     rec = {}
     sig = {"x": plant.sigma_x, "us": plant.sigma_us}
     for ch in ("x", "us"):
-        y = full[ch] + noise(rng, n, sig[ch], plant.noise_colour)
+        y = full[ch] + sig[ch] * unit_noise[ch]
         if ch == "x" and "probe_quantisation" in eff.items:
-            step = eff.items["probe_quantisation"]["step"]
-            q = quantise(y, step)
-            vis["probe_quantisation"] = {"x": float(np.std(q - y) / sig["x"])}
-            aff["probe_quantisation"] = dict(vis["probe_quantisation"])
-            y = q
+            y = quantise(y, eff.items["probe_quantisation"]["step"])
         rec[ch] = y
     nuisance = {"first_mode": {}, "sampling_lag": {}}
     static = sim.run(eff, first_mode=False)

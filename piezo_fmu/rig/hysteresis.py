@@ -250,7 +250,7 @@ def _triangle_cells(lo: float, hi: float, n: int):
 
 def draw_hysteresis(rng: np.random.Generator, u_rest: float, u_lo: float, u_top: float,
                     family: str | None = None, calm: float = 0.0) -> Hysteresis:
-    """Draw a device hysteresis around the paper's magnitudes (loop 6-15 % of the stroke).
+    """Draw a device hysteresis around the paper's magnitudes (widest loop 3-25 % of the stroke).
 
     Parameters
     ----------
@@ -275,7 +275,7 @@ def draw_hysteresis(rng: np.random.Generator, u_rest: float, u_lo: float, u_top:
     if family == "bouc_wen":
         gamma_ratio = rng.uniform(-0.1, 0.1) * (1.0 - calm)
         beta = 1.0 / (v_sat * (1.0 + gamma_ratio))
-        params = {"alpha": rng.uniform(0.12, 0.3), "beta": beta, "gamma": gamma_ratio * beta}
+        params = {"alpha": rng.uniform(0.28, 0.45), "beta": beta, "gamma": gamma_ratio * beta}
     elif family == "kp":
         lo, hi = min(u_lo, u_rest) - 10.0, u_top + 10.0
         n = int(rng.integers(14, 22))
@@ -284,14 +284,14 @@ def draw_hysteresis(rng: np.random.Generator, u_rest: float, u_lo: float, u_top:
         mu = np.exp(-width / (2.0 * v_sat)) * (
             1.0 + 0.1 * (1.0 - calm) * rng.standard_normal(a.size)).clip(0.5)
         # mu * 2 is the jump of one cell; scale the hysteretic part to 8-20 % of the span
-        mu *= rng.uniform(0.08, 0.2) * (hi - lo) / (2.0 * mu.sum())
-        params = {"a": a, "b": b, "w": np.full(a.size, w), "mu": mu, "lin": rng.uniform(0.6, 0.85)}
+        mu *= rng.uniform(0.2, 0.4) * (hi - lo) / (2.0 * mu.sum())
+        params = {"a": a, "b": b, "w": np.full(a.size, w), "mu": mu, "lin": rng.uniform(0.45, 0.75)}
     elif family == "pi_other":
         m = int(rng.choice([4, 5, 6, 7, 8, 10, 12, 14, 16, 20]))
         power = rng.uniform(0.6, 1.8)
-        r = 3.0 * v_sat * (np.arange(m) / m) ** power
+        r = 2.5 * v_sat * (np.arange(m) / m) ** power
         weights = np.exp(-r / v_sat) * np.exp(0.25 * (1.0 - calm) * rng.standard_normal(m))
-        weights[0] = rng.uniform(0.4, 0.8) * weights[1:].sum() if m > 1 else 1.0
+        weights[0] = rng.uniform(0.5, 1.0) * weights[1:].sum() if m > 1 else 1.0
         params = {"r": r, "weights": weights}
     else:
         raise ValueError(f"unknown hysteresis family {family!r}")
