@@ -13,11 +13,19 @@ from itertools import combinations
 import numpy as np
 import pytest
 
-from piezo_fmu.rig import (CATALOGUE, CONTROLS, GROUPS, cases, compatible, generate, read_csv,
-                           visibility, write_csv)
+from piezo_fmu.rig import (
+    CATALOGUE,
+    CONTROLS,
+    GROUPS,
+    cases,
+    compatible,
+    generate,
+    read_csv,
+    visibility,
+    write_csv,
+)
 from piezo_fmu.rig.hysteresis import draw_hysteresis, draw_shape
 from piezo_fmu.rig.plant import Effects, Plant, Simulator
-
 
 # ----------------------------------------------------------------------------------------------
 # a hand-built plant
@@ -25,10 +33,12 @@ from piezo_fmu.rig.plant import Effects, Plant, Simulator
 
 def make_plant(**over) -> Plant:
     rng = np.random.default_rng(3)
-    kw = dict(fs=2000.0, oversample=20, hysteresis=draw_hysteresis(rng, 0.0, 0.0, 60.0, "pi_other"),
-              amp_gain=1.0, amp_tau=0.5e-3, amp_tau2=0.0, C_a=4e-6, d_eff=0.1, k_a=176.6,
-              k_f=17.66, f1=15000.0, zeta1=0.3, pickoff="force", g_us=2.3e-3, g_x=1.0,
-              off_x=0.0, off_us=0.0, sigma_x=0.01, sigma_us=1e-3, u_lo=0.0, u_hi=60.0)
+    kw = {"fs": 2000.0, "oversample": 20,
+          "hysteresis": draw_hysteresis(rng, 0.0, 0.0, 60.0, "pi_other"),
+          "amp_gain": 1.0, "amp_tau": 0.5e-3, "amp_tau2": 0.0, "C_a": 4e-6, "d_eff": 0.1,
+          "k_a": 176.6, "k_f": 17.66, "f1": 15000.0, "zeta1": 0.3, "pickoff": "force",
+          "g_us": 2.3e-3, "g_x": 1.0, "off_x": 0.0, "off_us": 0.0, "sigma_x": 0.01,
+          "sigma_us": 1e-3, "u_lo": 0.0, "u_hi": 60.0}
     kw.update(over)
     return Plant(**kw)
 
@@ -267,7 +277,7 @@ def test_generation_is_deterministic(quick):
 
 
 def test_csv_round_trip_without_truth(quick, tmp_path):
-    specs, recs = quick
+    _, recs = quick
     for rec in recs[:4] + [r for r in recs if r.truth["group"] == "one_channel"]:
         path = write_csv(rec, tmp_path / f"{rec.truth['case_id']}.csv")
         text = path.read_text()

@@ -107,9 +107,7 @@ def compatible(names, channels: str = "both") -> bool:
         return False
     if names & {"push_rod_backlash"} and channels != "both":
         return False
-    if names & {"probe_quantisation", "probe_gain_modulation"} and channels == "us":
-        return False
-    return True
+    return not (names & {"probe_quantisation", "probe_gain_modulation"} and channels == "us")
 
 
 def _assemble(rows, seed0: int, prefix: str, **limits) -> list[CaseSpec]:
@@ -288,7 +286,7 @@ def _draw_plant(rng, spec: CaseSpec, fs: float, names) -> Plant:
     tau2 = tau * float(rng.uniform(0.15, 0.6)) if rng.random() < 0.4 else 0.0
     chans = ["x", "us"] if spec.channels == "both" else [spec.channels]
     lag = chans[rng.integers(len(chans))] if rng.random() < 0.1 and fs >= 1000.0 else None
-    u = lambda: float(rng.uniform(0.7, 1.3))   # noqa: E731 - the +-30 % spread
+    u = lambda: float(rng.uniform(0.7, 1.3))
     plant = Plant(
         fs=fs, oversample=max(1, int(np.ceil(40000.0 / fs))),
         hysteresis=draw_hysteresis(rng, 0.0, u_lo, u_hi),
@@ -334,7 +332,6 @@ def _quantisation_visibility(x: np.ndarray, nz: np.ndarray, step: float, sigma: 
 def _fail(why: list | None, reason: str) -> None:
     if why is not None:
         why.append(reason)
-    return None
 
 
 def _attempt(spec: CaseSpec, attempt: int, why: list | None = None) -> RigRecording | None:

@@ -51,7 +51,7 @@ def _steps(rng, fs, n, u_rest, u_lo, u_hi):
     u = np.full(n, u_rest)
     edges = lead + np.concatenate([[0.0], np.cumsum(holds)])
     for lv, t0, t1 in zip(levels, edges[:-1], edges[1:]):
-        u[int(round(t0 * fs)):int(round(t1 * fs))] = lv
+        u[round(t0 * fs):round(t1 * fs)] = lv
     return u, {"levels": [float(v) for v in levels], "holds": [float(h) for h in holds]}
 
 
@@ -84,7 +84,7 @@ def _sine_set(rng, fs, n, u_rest, u_lo, u_hi):
         m = int(np.floor(dur * f)) if dur * f >= 1 else 0
         if m == 0:
             continue
-        seg_n = int(round(m / f * fs))
+        seg_n = round(m / f * fs)
         if pos + seg_n > n:
             break
         amp = 0.5 * (u_hi - u_rest) * rng.uniform(0.4, 1.0)
@@ -106,7 +106,7 @@ def _triangle(rng, fs, n, u_rest, u_lo, u_hi):
     times = [0.0]
     vals = [u_rest]
     if centred:
-        lo = u_lo if u_lo < u_rest else u_rest
+        lo = min(u_rest, u_lo)
         mid = 0.5 * (lo + u_hi)
         amp = 0.5 * (u_hi - lo) * rng.uniform(0.7, 1.0) * rho ** np.arange(cycles)
         for c in range(cycles):
@@ -195,7 +195,7 @@ def programme(rng: np.random.Generator, fs: float, duration: float, kinds: list[
     segments : list of dict
         ``kind``, ``start`` and ``stop`` [s] and the segment's parameters.
     """
-    n_total = int(round(duration * fs))
+    n_total = round(duration * fs)
     mins = np.array([MIN_DURATION[k] for k in kinds])
     spare = max(0.0, duration - mins.sum())
     durs = mins + spare * rng.dirichlet(np.ones(len(kinds)) * 2.0)

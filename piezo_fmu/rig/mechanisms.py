@@ -99,7 +99,6 @@ def realise(name: str, level: float, fx: dict, ctx: dict) -> dict:
     Returns a dict read by ``plant.simulate``; keys ending in a unit are for the record.
     """
     plant = ctx["plant"]
-    T = ctx["duration"]
     if name == "creep":
         g = _piece(level, 0.0, 0.01, 0.05)
         return {"gamma": g, "t0": fx["t0"]}
@@ -117,7 +116,7 @@ def realise(name: str, level: float, fx: dict, ctx: dict) -> dict:
         M = plant.oversample
         if level >= 0.5:
             n_max = int(np.clip(np.floor(2e-3 * plant.fs), 1, 20))
-            n_rec = int(round(n_max ** ((level - 0.5) / 0.5)))
+            n_rec = round(n_max ** ((level - 0.5) / 0.5))
             steps = n_rec * M
         else:
             steps = int(np.floor(level / 0.5 * M))

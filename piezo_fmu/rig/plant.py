@@ -144,7 +144,7 @@ class Effects:
 
     items: dict = field(default_factory=dict)
 
-    def without(self, name: str) -> "Effects":
+    def without(self, name: str) -> Effects:
         return Effects({k: v for k, v in self.items.items() if k != name})
 
     def get(self, name: str):
@@ -369,7 +369,7 @@ class Simulator:
         td = g("time_delay")
         d = int(td["steps_internal"]) if td is not None else 0
         if d > 0:
-            shift = lambda y: np.concatenate([np.full(d, y[0]), y[:-d]])   # noqa: E731
+            shift = lambda y: np.concatenate([np.full(d, y[0]), y[:-d]])
             ua, x_h, x_f, x = shift(ua), shift(x_h), shift(x_f), shift(x)
         sl = slice(0, n * M, M)
         t = np.arange(n) / plant.fs
