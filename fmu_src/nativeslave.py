@@ -12,7 +12,9 @@ It instantiates the slave class named in ``resources/piezo_runtime.cfg`` with
   slave rewrites it at every mode change: step mode allows both). The runtime holds a buffer
   view on each array, so they can neither move nor be resized while it uses them.
 * ``_rt_do_step(t, h)`` -> status: the hot path (the only Python call of a communication step
-  when inputs are set and outputs read through ``values``).
+  when inputs are set and outputs read through ``values``). ``_rt_bind`` replaces it on the
+  instance by a function generated for the slave's own inputs and outputs (the copies unrolled:
+  a loop over (index, name) pairs cost ~0.3 us per step and FMU).
 * ``_rt_call(method, *args)`` -> ``(status, result)`` for every other FMI function (the checked
   ``set_real``/``get_real`` slow paths, modes, FMU state).
 
@@ -56,6 +58,7 @@ class NativeSlave:
         self._rt_in = ()
         self._rt_out = ()
         self._rt_io = ()
+        self.__dict__["_rt_do_step"] = self._rt_do_step   # replaced by _rt_bind
 
     def _rt_bind(self, protocol):
         if protocol != PROTOCOL:
@@ -70,7 +73,22 @@ class NativeSlave:
         self._rt_out = tuple((len(ins) + i, v.name) for i, v in enumerate(outs))
         self._rt_io = self._rt_in + self._rt_out
         self._rt_publish()
+        self.__dict__["_rt_do_step"] = self._rt_step_function()
         return self._rt_values, self._rt_control, array("i", [v.vr for v in ins + outs]), len(ins)
+
+    def _rt_step_function(self):
+        """``_rt_do_step`` for this slave's inputs and outputs, the copies unrolled (the same
+        behaviour as :meth:`_rt_do_step`)."""
+        pull = "".join(f"    d[{name!r}] = values[{i}]\n" for i, name in self._rt_in)
+        push = "".join(f"    values[{i}] = d[{name!r}]\n" for i, name in self._rt_out)
+        source = ("def _rt_do_step(t, h):\n" + pull
+                  + "    try:\n        do_step(t, h)\n        status = 0\n"
+                  + "    except BaseException as e:  # noqa: BLE001\n"
+                  + "        status = error('do_step', e)\n" + push + "    return status\n")
+        scope = {"d": self.__dict__, "values": self._rt_values, "do_step": self.do_step,
+                 "error": self._rt_error}
+        exec(compile(source, f"<{type(self).__name__} runtime step>", "exec"), scope)  # noqa: S102
+        return scope["_rt_do_step"]
 
     def _rt_publish(self):
         """Tell the runtime what it may serve without Python in the current mode."""

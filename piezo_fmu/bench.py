@@ -27,6 +27,33 @@
 5. ``diagnose_s``: ``diagnose`` on a synthetic recording of 20 s at 10 kHz with two channels.
 6. ``write_csv_s``, ``write_parquet_s``: writing the 1e6 rows of a 100 s run recorded every 1e-4 s
    (the command line's default) through :class:`piezo_fmu.results.RunWriter` (target < 5 s).
+7. The FMUs' native runtime (:func:`runtime_figures`), in one run:
+
+   * one FMI call on the pass-through FMU: ``call_master_dostep_us`` / ``call_master_setget_us``
+     (``fmi2DoStep``; one ``fmi2SetReal`` or ``fmi2GetReal``) from our master's binding on the main
+     thread, ``call_master_thread_*`` from another Python thread; ``call_c_*`` and
+     ``call_c_thread_*`` the same from the C host ``tests/host/fmi2_host.c`` on its main thread
+     and on a thread Python has never seen;
+   * the 3-FMU closed loop per communication step from the C host: ``loop_c_us_per_step`` (engine
+     ``cosim_engine``) and ``loop_c_python_us_per_step``, with ``loop_c_to_master`` and
+     ``loop_c_python_to_master`` against ``cosim_us_per_step`` / ``cosim_python_us_per_step``
+     (target <= 1: the C host no slower than our master);
+   * libcosim driven from C (``tests/host/libcosim_run.c`` on libcosimpy's ``libcosimc.so``):
+     ``loop_libcosim_us_per_step`` for ``PiezoSystem.ssp`` (the FMUs' default engine, so against
+     ``cosim_python_us_per_step``: ``loop_libcosim_to_master``, target <= 3) and
+     ``loop_libcosim_floor_us_per_step``, three pass-through FMUs in a ring: libcosim's own cost
+     per step (its worker thread and hand-offs);
+   * ``cosim_command_us_per_step``: the ``cosim`` command as a user runs it (a fresh process,
+     ``--out run.csv``, recording every 1e-4 s, the FMUs' default engine, its progress, CSV and
+     error summary), per communication step: the difference between a long and a short run
+     (``cosim_command_steps`` apart) over the difference in steps, so the fixed costs (imports,
+     loading the FMUs) are excluded and everything a step costs is in; ``cosim_command_to_loop``
+     against ``cosim_python_us_per_step`` (target <= 1.3); ``cosim_command_fixed_s`` the fixed
+     part (from the command's imports to its summary, interpreter start excluded). Runs too
+     short to tell apart (``--size tiny``) give the whole command per step instead.
+
+   The C figures need a C compiler and the repository's ``tests/host`` (a source checkout), the
+   libcosim ones libcosimpy; without them those keys are ``None``.
 
 Every figure is the best of a few repetitions (the machine's other load only slows runs down).
 ``--size tiny`` runs each part briefly so the test suite can check the benchmark keeps working.
@@ -34,9 +61,12 @@ Every figure is the best of a few repetitions (the machine's other load only slo
 from __future__ import annotations
 
 import ctypes
+import functools
 import math
 import os
 import platform
+import shutil
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -45,18 +75,27 @@ import numpy as np
 
 from .builder import build_all
 
-__all__ = ["KEYS", "SIZES", "format_figures", "run_bench"]
+__all__ = ["KEYS", "RUNTIME_KEYS", "SIZES", "format_figures", "run_bench", "runtime_figures"]
 
 KEYS = ("floor_us_per_step", "cosim_us_per_step", "cosim_to_floor", "cosim_realtime_factor",
         "monolithic_samples_per_s", "monolithic_speedup_vs_cosim", "pi_ns_per_sample_operator",
         "diagnose_s")
+# the runtime's figures (item 7); the C and libcosim ones are None without a compiler, the
+# repository's tests/host or libcosimpy
+RUNTIME_KEYS = ("call_master_dostep_us", "call_master_setget_us", "call_master_thread_dostep_us",
+                "call_master_thread_setget_us", "call_c_dostep_us", "call_c_setget_us",
+                "call_c_thread_dostep_us", "call_c_thread_setget_us", "loop_c_us_per_step",
+                "loop_c_python_us_per_step", "loop_c_to_master", "loop_c_python_to_master",
+                "loop_libcosim_us_per_step", "loop_libcosim_to_master", "loop_libcosim_floor_us_per_step",
+                "cosim_command_us_per_step", "cosim_command_to_loop")
 H = 1e-4
+HOST_SRC = Path(__file__).resolve().parents[1] / "tests" / "host"    # the C hosts (a source checkout)
 
 SIZES = {  # steps per co-simulation run, repetitions, monolithic seconds, PI samples, diagnose recording
     "full": dict(steps=5000, reps=10, mono_s=10.0, mono_py_s=0.2, pi_n=200_000, diag=(20.0, 10_000.0),
-                 write_rows=1_000_000),
+                 write_rows=1_000_000, calls=100_000, command_s=10.0),
     "tiny": dict(steps=300, reps=1, mono_s=0.02, mono_py_s=0.01, pi_n=2_000, diag=(0.6, 2_000.0),
-                 write_rows=2_000),
+                 write_rows=2_000, calls=2_000, command_s=0.05),
 }
 
 
@@ -102,6 +141,211 @@ def _floor_and_cosim_us(passthrough, fmus, steps, reps, engines):
             cosimulate(fmus, Signal("sine", 45.0, 45.0, 10.0), 10 * H, H, engine=e)
         runs = [(floor(), {e: system(e) for e in engines}) for _ in range(reps)]
     return min(f for f, _ in runs), {e: min(c[e] for _, c in runs) for e in engines}
+
+
+def _master_calls(passthrough, n, reps):
+    """us per fmi2DoStep and per fmi2SetReal/fmi2GetReal through our master's binding
+    (:attr:`piezo_fmu.fmi.Slave.hot`), on this thread and on another Python thread."""
+    import threading
+
+    from .fmi import load_slaves
+
+    with load_slaves({"P": passthrough}) as slaves:
+        s = slaves["P"]
+        s.setup(0.0)
+        s.enter_initialization(0.0)
+        s.exit_initialization(0.0)
+        setr, dostep, getr = s.hot
+        in_vr, inp, _ = s.bind(["u"])
+        out_vr, out, _ = s.bind(["y"])
+        c, one, h, no_prior = s.c, ctypes.c_size_t(1), ctypes.c_double(H), ctypes.c_int(1)
+        res = {}
+
+        def measure(key):
+            t = ctypes.c_double(0.0)
+
+            def steps():
+                t0 = time.perf_counter()
+                for _ in range(n):
+                    dostep(c, t, h, no_prior)
+                return (time.perf_counter() - t0) / n * 1e6
+
+            def setget():
+                t0 = time.perf_counter()
+                for _ in range(n):
+                    setr(c, in_vr, one, inp)
+                    getr(c, out_vr, one, out)
+                return (time.perf_counter() - t0) / (2 * n) * 1e6
+            res[f"call_master{key}_dostep_us"] = _best(steps, reps)
+            res[f"call_master{key}_setget_us"] = _best(setget, reps)
+
+        measure("")
+        worker = threading.Thread(target=measure, args=("_thread",))
+        worker.start()
+        worker.join()
+    return res
+
+
+def _compile(src, exe, *flags):
+    from .builder.runtime import find_compiler
+
+    argv, _ = find_compiler()
+    if argv is None or not Path(src).is_file():
+        return None
+    proc = subprocess.run([*argv, "-O2", "-o", str(exe), str(src), *flags], capture_output=True, text=True,
+                          check=False, timeout=300)
+    return exe if proc.returncode == 0 else None
+
+
+def _numbers(stdout):
+    return {ln.split()[0]: float(ln.split()[1]) for ln in stdout.splitlines()
+            if len(ln.split()) == 2 and not ln.startswith(("row", "status", "errors"))}
+
+
+def _c_host_figures(fmus, cfg, workdir, engine):
+    """The C host's figures (None each without a compiler or tests/host)."""
+    from fmpy import extract, read_model_description
+
+    res = dict.fromkeys(("call_c_dostep_us", "call_c_setget_us", "call_c_thread_dostep_us",
+                         "call_c_thread_setget_us", "loop_c_us_per_step", "loop_c_python_us_per_step"))
+    host = _compile(HOST_SRC / "fmi2_host.c", Path(workdir) / "fmi2_host", "-ldl", "-lpthread", "-lm")
+    if host is None:
+        return res
+    info = {}
+    for name in ("Actuator", "Sensor", "Compensator", "PassThrough"):
+        md = read_model_description(str(fmus[name]))
+        info[name] = (f"{extract(str(fmus[name]), unzipdir=str(Path(workdir) / name))}:{name}:{md.guid}",
+                      {v.name: v.valueReference for v in md.modelVariables})
+    env = {"PATH": "/usr/bin:/bin"}       # nothing of this process's Python
+    run = functools.partial(subprocess.run, capture_output=True, text=True, check=False, timeout=600, env=env)
+    calls = _numbers(run([str(host), "bench", info["PassThrough"][0], str(cfg["calls"])]).stdout)
+    for src, key in (("main_dostep_us", "call_c_dostep_us"), ("main_setget_us", "call_c_setget_us"),
+                     ("thread_dostep_us", "call_c_thread_dostep_us"), ("thread_setget_us", "call_c_thread_setget_us")):
+        res[key] = calls.get(src)
+    a, s, c = (info[n][1] for n in ("Actuator", "Sensor", "Compensator"))
+    env["HOST_LOOP_VRS"] = ",".join(str(v) for v in (a["uc"], a["x"], a["F"], a["ua"], s["F"], s["us"], c["us"],
+                                                       c["uc"], c["x_target"]))
+    specs = [info[n][0] for n in ("Actuator", "Sensor", "Compensator")]
+    compiled = [arg for n, vrs in (("Actuator", a), ("Compensator", c))
+                for arg in ("--int", f"{n}:{vrs['simulation.engine']}=1")]
+    for key, flags in (("loop_c_python_us_per_step", []),
+                       ("loop_c_us_per_step", compiled if engine == "numba" else [])):
+        best = [_numbers(run([str(host), *flags, "bench-loop", *specs, str(cfg["steps"]), str(H)]).stdout)
+                .get("loop_us_per_step") for _ in range(max(1, min(cfg["reps"], 3)))]
+        best = [b for b in best if b]
+        res[key] = min(best) if best else None
+    return res
+
+
+RING_SSD = """<?xml version="1.0" encoding="UTF-8"?>
+<ssd:SystemStructureDescription xmlns:ssc="http://ssp-standard.org/SSP1/SystemStructureCommon"
+    xmlns:ssd="http://ssp-standard.org/SSP1/SystemStructureDescription" version="1.0" name="Ring">
+  <ssd:System name="Ring"><ssd:Elements>{components}</ssd:Elements><ssd:Connections>{connections}
+  </ssd:Connections></ssd:System>
+</ssd:SystemStructureDescription>
+"""
+
+
+def _libcosim_figures(fmus, cfg, workdir):
+    """libcosim driven from C: PiezoSystem.ssp and a ring of three pass-through FMUs."""
+    res = {"loop_libcosim_us_per_step": None, "loop_libcosim_floor_us_per_step": None}
+    try:
+        import libcosimpy
+    except ImportError:
+        return res
+    from .ssp import write_system_ssp
+
+    libdir = Path(libcosimpy.__file__).parent / "libcosimc"
+    exe = _compile(HOST_SRC / "libcosim_run.c", Path(workdir) / "libcosim_run", f"-L{libdir}", "-l:libcosimc.so",
+                   f"-Wl,-rpath,{libdir}")
+    if exe is None:
+        return res
+    ssp = write_system_ssp(Path(workdir) / "PiezoSystem.ssp", {n: fmus[n] for n in ("Actuator", "Sensor", "Compensator")})
+    ring = Path(workdir) / "ring"
+    (ring / "resources").mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(fmus["PassThrough"], ring / "resources" / "PassThrough.fmu")
+    names = ("P1", "P2", "P3")
+    components = "".join(f'<ssd:Component name="{n}" source="resources/PassThrough.fmu"><ssd:Connectors>'
+                         '<ssd:Connector name="u" kind="input"><ssc:Real/></ssd:Connector>'
+                         '<ssd:Connector name="y" kind="output"><ssc:Real/></ssd:Connector>'
+                         '</ssd:Connectors></ssd:Component>' for n in names)
+    connections = "".join(f'<ssd:Connection startElement="{a}" startConnector="y" endElement="{b}" '
+                          'endConnector="u"/>' for a, b in zip(names, names[1:] + names[:1]))
+    (ring / "SystemStructure.ssd").write_text(RING_SSD.format(components=components, connections=connections))
+    stop_ns = cfg["steps"] * 100_000
+    for key, target, cols in (("loop_libcosim_us_per_step", ssp, []),
+                              ("loop_libcosim_floor_us_per_step", ring, ["P1.y", "P2.y", "P3.y"])):
+        best = []
+        for _ in range(max(1, min(cfg["reps"], 3))):
+            proc = subprocess.run([str(exe), str(target), "100000", str(stop_ns), *cols], capture_output=True,
+                                  text=True, check=False, timeout=600, env={})
+            best.append(_numbers(proc.stdout).get("us_per_step"))
+        best = [b for b in best if b]
+        res[key] = min(best) if best else None
+    return res
+
+
+COMMAND = """
+import contextlib, io, sys, time
+t0 = time.perf_counter()
+from piezo_fmu.cli import main
+with contextlib.redirect_stderr(io.StringIO()):
+    rc = main(["cosim", "--fmu-dir", sys.argv[1], "--stop-time", sys.argv[2], "--out", sys.argv[3], "--force",
+               "--quiet"])
+print("@@", rc, time.perf_counter() - t0)
+"""
+
+
+def _command_s(fmu_dir, seconds, workdir):
+    """Seconds of one ``cosim`` command in a fresh process (imports to summary), None on failure."""
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", COMMAND, str(fmu_dir), repr(seconds),
+                           str(Path(workdir) / "command.csv")], capture_output=True, text=True,
+                          check=False, timeout=600)
+    line = next((ln for ln in proc.stdout.splitlines() if ln.startswith("@@")), None)
+    return float(line.split()[2]) if line and line.split()[1] == "0" else None
+
+
+def _command_us(fmu_dir, seconds, reps, workdir):
+    """``(us per step, fixed s)`` of the ``cosim`` command: a run of ``seconds`` against one a
+    tenth as long, the best of ``reps`` each (module docstring, item 7)."""
+    short, long = seconds / 10, seconds
+    t_short = [t for t in (_command_s(fmu_dir, short, workdir) for _ in range(reps)) if t]
+    t_long = [t for t in (_command_s(fmu_dir, long, workdir) for _ in range(reps)) if t]
+    if not t_short or not t_long:
+        return None, None
+    steps = round(long / H) - round(short / H)
+    per_step = (min(t_long) - min(t_short)) / steps
+    if per_step <= 0:     # runs too short to tell apart (the tiny size): the whole command per step
+        return min(t_long) / round(long / H) * 1e6, min(t_short)
+    return per_step * 1e6, min(t_short) - per_step * round(short / H)
+
+
+def runtime_figures(fmus, size="full", master=None, workdir=None, engine="python") -> dict:
+    """The native runtime's figures (module docstring, item 7). ``fmus``: ``build_all`` output
+    with the pass-through FMU; ``master``: the run's ``cosim_us_per_step`` and
+    ``cosim_python_us_per_step`` for the ratios."""
+    cfg = SIZES[size]
+    master = master or {}
+    out = {}
+    with tempfile.TemporaryDirectory(prefix="piezo-fmu-bench-rt-") as tmp:
+        work = Path(workdir or tmp)
+        out.update(_master_calls(fmus["PassThrough"], cfg["calls"], cfg["reps"]))
+        out.update(_c_host_figures(fmus, cfg, work, engine))
+        out.update(_libcosim_figures(fmus, cfg, work))
+        out["cosim_command_us_per_step"], out["cosim_command_fixed_s"] = _command_us(
+            Path(fmus["Actuator"]).parent, cfg["command_s"], max(1, min(cfg["reps"], 2)), work)
+    loop, loop_py = master.get("cosim_us_per_step"), master.get("cosim_python_us_per_step")
+
+    def ratio(a, b):
+        return a / b if a and b else None
+    out["loop_c_to_master"] = ratio(out["loop_c_us_per_step"], loop)
+    out["loop_c_python_to_master"] = ratio(out["loop_c_python_us_per_step"], loop_py)
+    out["loop_libcosim_to_master"] = ratio(out["loop_libcosim_us_per_step"], loop_py)
+    out["cosim_command_to_loop"] = ratio(out["cosim_command_us_per_step"], loop_py)
+    out["cosim_command_steps"] = round(cfg["command_s"] / H) - round(cfg["command_s"] / 10 / H)
+    return out
 
 
 def _monolithic(model, seconds, engine, reps, control_step):
@@ -286,6 +530,8 @@ def run_bench(size="full", model=None, say=None) -> dict:
         # the interpreted model against the interpreted FMUs (NumPy only on both sides)
         out["monolithic_python_speedup_vs_cosim_python"] = _speedup(
             out["cosim_python_us_per_step"], out["monolithic_python_samples_per_s"])
+        say("native FMI runtime: calls, closed loop from C and in libcosim, the cosim command")
+        out.update(runtime_figures(fmus, size, out, engine=engine))
         say(f"writing {cfg['write_rows']:,} recorded rows as CSV and Parquet")
         out.update(_write_figures(cfg["write_rows"], cfg["reps"], tmp))
         say("PI operator throughput")
@@ -294,10 +540,17 @@ def run_bench(size="full", model=None, say=None) -> dict:
         say(f"diagnose on a {seconds:g} s, {fs:g} Hz, two-channel recording")
         out["diagnose_s"] = _diagnose_s(model_path, seconds, fs, tmp)
         out["diagnose_recording"] = {"seconds": seconds, "rate_hz": fs, "channels": ["x", "us"]}
-    out["targets"] = {"cosim_to_floor": "<= 1.5", "cosim_realtime_factor": ">= 3",
+    out["targets"] = {"loop_c_to_master": "<= 1", "loop_libcosim_to_master": "<= 3",
+                      "cosim_command_to_loop": "<= 1.3", "cosim_us_per_step": "<= 10 (compiled)",
+                      "cosim_to_floor": "<= 1.5", "cosim_realtime_factor": ">= 3",
                       "monolithic_samples_per_s": ">= 1e6", "monolithic_speedup_vs_cosim": ">= 100",
                       "diagnose_s": "< 60 (20 s at 10 kHz)"}
     return out
+
+
+def _us(r, key, digits):
+    v = r.get(key)
+    return "n/a" if v is None else f"{v:.{digits}f}"
 
 
 def format_figures(r) -> str:
@@ -330,6 +583,23 @@ def format_figures(r) -> str:
                                      "ns per sample)"),
             ("PI scan, vectorised", f"{r['pi_forward_scan_ns_per_sample_operator']:.1f} ns per sample and "
                                     "operator"),
+            ("one FMI call from our master: fmi2DoStep / Set-GetReal",
+             f"{_us(r, 'call_master_dostep_us', 2)} / {_us(r, 'call_master_setget_us', 3)} us "
+             f"(another Python thread {_us(r, 'call_master_thread_dostep_us', 2)} / "
+             f"{_us(r, 'call_master_thread_setget_us', 3)} us)"),
+            ("one FMI call from C: fmi2DoStep / Set-GetReal",
+             f"{_us(r, 'call_c_dostep_us', 2)} / {_us(r, 'call_c_setget_us', 3)} us (a thread Python never saw "
+             f"{_us(r, 'call_c_thread_dostep_us', 2)} / {_us(r, 'call_c_thread_setget_us', 3)} us)"),
+            (f"closed loop from the C host ({r['cosim_engine']} / python)",
+             f"{_us(r, 'loop_c_us_per_step', 1)} / {_us(r, 'loop_c_python_us_per_step', 1)} us/step, "
+             f"x{_us(r, 'loop_c_to_master', 2)} / x{_us(r, 'loop_c_python_to_master', 2)} our master (target <= 1)"),
+            ("closed loop in libcosim (python engine)",
+             f"{_us(r, 'loop_libcosim_us_per_step', 1)} us/step, x{_us(r, 'loop_libcosim_to_master', 1)} our "
+             f"master (target <= 3); 3 pass-through FMUs {_us(r, 'loop_libcosim_floor_us_per_step', 1)} us/step"),
+            ("the cosim command, recording every step",
+             f"{_us(r, 'cosim_command_us_per_step', 1)} us/step ({r.get('cosim_command_steps', 0)} steps "
+             f"apart), x{_us(r, 'cosim_command_to_loop', 2)} the stepping loop (target <= 1.3); fixed "
+             f"{_us(r, 'cosim_command_fixed_s', 2)} s"),
             ("writing a 100 s run (1e6 rows at 1e-4 s)" if r["write_rows"] == 1_000_000
              else f"writing {r['write_rows']} rows",
              f"CSV {r['write_csv_s']:.2f} s ({r['write_csv_MB']:.0f} MB), Parquet {r['write_parquet_s']:.2f} s "

@@ -35,11 +35,12 @@ Failures: a missing or unreadable FMU, a failing FMI call (with the messages the
 and a model whose list parameters do not fit the FMUs raise :class:`~piezo_fmu.errors.UserError`
 (:class:`~piezo_fmu.fmi.FmuError`); after an fmi2Fatal no further call is made on any instance.
 The FMI binding itself (loading, ctypes calls, the FMUs' log) is :mod:`piezo_fmu.fmi`. Ctrl-C is taken
-between FMI calls (inside an FMU it would turn into an fmi2Fatal).
+between FMI calls (inside an FMU it would fail the call with fmi2Error).
 
 Speed: value references are batched per FMU and the FMI functions are called through ctypes on
 preallocated arrays (one ``fmi2SetReal``, one ``fmi2DoStep`` and one ``fmi2GetReal`` per FMU
-and step; nothing is allocated per step). Results stream in chunks to ``sink``.
+and step, without ``argtypes`` conversions; nothing is allocated per step but the step's time as
+a ``c_double``). Results stream in chunks to ``sink``.
 """
 from __future__ import annotations
 
@@ -385,8 +386,10 @@ class Plan:
         return np.array([[t] + [arr[i] for arr, i in self.rec]])
 
     def _bodies(self):
-        return [(p.slave, p.slave.c, p.slave.set_real, p.slave.do_step, p.slave.get_real,
-                 p.in_vr, p.n_in, p.inp, p.out_vr, p.n_out, p.out,
+        # the raw calls (Slave.hot) take ctypes objects of the exact C types: the counts as c_size_t
+        return [(p.slave, p.slave.c, *p.slave.hot,
+                 p.in_vr, ctypes.c_size_t(p.n_in) if p.n_in else None, p.inp, p.out_vr,
+                 ctypes.c_size_t(p.n_out), p.out,
                  tuple((i, src, j) for i, src, j, _ in p.copies), k == self.ext_step)
                 for k, p in enumerate(self.steps)]
 
@@ -403,8 +406,10 @@ class Plan:
         use_ext = xr is not None
         record = self._record
         row = 0
+        double, h, no_prior = ctypes.c_double, ctypes.c_double(H), ctypes.c_int(1)
         for k in range(n):
             t = t0 + (k0 + k) * H
+            tc = double(t)
             for s, c, setr, dostep, getr, in_vr, n_in, inp, out_vr, n_out, out, copies, ext in bodies:
                 for i, src, j in copies:
                     inp[i] = src[j]
@@ -414,7 +419,7 @@ class Plan:
                     st = setr(c, in_vr, n_in, inp)
                     if st:
                         s.check(st, "fmi2SetReal", t)
-                st = dostep(c, t, H, 1)
+                st = dostep(c, tc, h, no_prior)
                 if st:
                     s.check(st, "fmi2DoStep", t)
                 st = getr(c, out_vr, n_out, out)
@@ -431,8 +436,10 @@ class Plan:
         use_ext = xr is not None
         record = self._record
         row = 0
+        double, h, no_prior = ctypes.c_double, ctypes.c_double(H), ctypes.c_int(1)
         for k in range(n):
             t = t0 + (k0 + k) * H
+            tc = double(t)
             for s, c, setr, dostep, getr, in_vr, n_in, inp, out_vr, n_out, out, copies, ext in bodies:
                 for i, src, j in copies:
                     inp[i] = src[j]
@@ -443,7 +450,7 @@ class Plan:
                     if st:
                         s.check(st, "fmi2SetReal", t)
             for s, c, setr, dostep, getr, in_vr, n_in, inp, out_vr, n_out, out, copies, ext in bodies:
-                st = dostep(c, t, H, 1)
+                st = dostep(c, tc, h, no_prior)
                 if st:
                     s.check(st, "fmi2DoStep", t)
                 st = getr(c, out_vr, n_out, out)

@@ -1,9 +1,12 @@
 """The FMI 2.0 co-simulation binding the master uses: one FMU instance driven through ctypes.
 
 :class:`Slave` loads an FMU with fmpy (extract, read the modelDescription, ``FMU2Slave``) and binds
-the hot FMI functions (``fmi2SetReal``, ``fmi2DoStep``, ``fmi2GetReal``, ...) on a ``ctypes.PyDLL``
-view of the library, so that the master can call them on preallocated arrays with nothing
-allocated per call. Every FMU's log messages arrive through the one process-wide logger of
+the FMI functions on a ``ctypes.PyDLL`` view of the library (the GIL is kept: the FMUs' native
+runtime serves ``fmi2SetReal``/``fmi2GetReal`` of inputs and outputs without Python and enters
+Python in ``fmi2DoStep`` without any GIL operation for a caller that holds it). The stepping
+loop's three functions are also bound without ``argtypes`` (:attr:`Slave.hot`): ctypes converts
+``POINTER`` arguments in Python, ~0.5 us per call, so the loop passes ctypes objects of the exact
+C types instead, and nothing is allocated per call but the step's ``c_double`` time. Every FMU's log messages arrive through the one process-wide logger of
 :mod:`piezo_fmu.fmilog` and are kept per instance (:class:`LogBook`) to explain a failing call.
 :func:`load_slaves` loads several FMUs as one context manager (:class:`Slaves`) that frees them
 all, and after an fmi2Fatal makes no further call on any instance.
@@ -127,8 +130,9 @@ class Slave:
         except Exception as exc:  # noqa: BLE001 - fmpy raises bare Exception
             self.close()
             raise FmuError(f"{path}: cannot load the FMU ({exc}); {BUILD_HINT}") from None
-        # the hot calls keep the GIL (a PyDLL view of the loaded library): a pythonfmu FMU takes
-        # it on every call anyway, and releasing it around each call cost 1.3-1.9 us per step
+        # the calls keep the GIL (a PyDLL view of the loaded library): the native runtime needs
+        # no GIL operation for such a caller, and releasing it around each call cost 1.3-1.9 us
+        # per step
         dll = ctypes.PyDLL(self.fmu.dll._name, handle=self.fmu.dll._handle)
         vp, sz, dbl, i = ctypes.c_void_p, ctypes.c_size_t, ctypes.c_double, ctypes.c_int
 
@@ -147,6 +151,10 @@ class Slave:
         self._enter = bind("fmi2EnterInitializationMode", [vp])
         self._exit = bind("fmi2ExitInitializationMode", [vp])
         self._terminate = bind("fmi2Terminate", [vp])
+        # (fmi2SetReal, fmi2DoStep, fmi2GetReal) without argtypes for the stepping loop: call them
+        # with (c_void_p, c_uint array, c_size_t, c_double array) and (c_void_p, c_double,
+        # c_double, c_int) objects only
+        self.hot = tuple(self._raw(dll, f) for f in ("fmi2SetReal", "fmi2DoStep", "fmi2GetReal"))
         try:
             self.fmu.instantiate(callbacks=logbook.callbacks, loggingOn=True)
         except Exception:  # noqa: BLE001 - fmpy raises bare Exception
@@ -156,6 +164,12 @@ class Slave:
                            + (f": {detail}" if detail else "")) from None
         self.c = ctypes.c_void_p(self.fmu.component)
         self.state = "instantiated"
+
+    @staticmethod
+    def _raw(dll, name):
+        f = dll[name]            # a new function object (attribute access shares one with argtypes)
+        f.restype = ctypes.c_int
+        return f
 
     # -- variables ------------------------------------------------------------------------------
     def variable(self, name):
@@ -253,7 +267,7 @@ class Slave:
             self.fmu = None
             if self.unzip:
                 shutil.rmtree(self.unzip, ignore_errors=True)
-                # pythonfmu puts each instance's resources/ on sys.path: take ours off again
+                # the runtime puts each FMU's resources/ on sys.path (its modules): take ours off
                 sys.path[:] = [p for p in sys.path if not str(p).startswith(self.unzip)]
                 self.unzip = None
 
@@ -278,9 +292,10 @@ class Slaves(dict):
 class DeferredInterrupt:
     """Ctrl-C during a run is taken at the next chunk boundary instead of inside FMU code.
 
-    A ``KeyboardInterrupt`` raised while an FMU's Python code runs would be swallowed by the
-    pythonfmu wrapper and come back as an fmi2Fatal status; with this handler the master raises
-    it itself, between FMI calls, and the instances are freed normally.
+    A ``KeyboardInterrupt`` raised while an FMU's Python code runs would fail that FMI call (the
+    native runtime returns fmi2Error and re-posts the interrupt; pythonfmu's binary returned
+    fmi2Fatal); with this handler the master raises it itself, between FMI calls, and the
+    instances are freed normally.
     """
 
     def __enter__(self):

@@ -2,7 +2,9 @@
 import json
 import math
 
-from piezo_fmu.bench import KEYS
+import shutil
+
+from piezo_fmu.bench import KEYS, RUNTIME_KEYS
 from piezo_fmu.cli import main
 
 
@@ -33,6 +35,15 @@ def test_bench_tiny_writes_every_key(tmp_path, capsys):
     assert r["monolithic_control_step_s"] == 1e-4     # the controller sampled as in the co-simulation
     assert r["diagnose_recording"]["channels"] == ["x", "us"]
     assert r["machine"]["cores"] >= 1
+    # the native runtime's figures: every key there; the C host's in a checkout with a compiler
+    for key in RUNTIME_KEYS:
+        assert key in r and (r[key] is None or (math.isfinite(r[key]) and r[key] > 0)), key
+    for key in ("call_master_dostep_us", "call_master_setget_us", "cosim_command_fixed_s"):
+        assert r[key] is not None, key
+    if shutil.which("gcc") or shutil.which("cc"):
+        for key in ("call_c_dostep_us", "call_c_thread_dostep_us", "loop_c_us_per_step", "loop_c_to_master"):
+            assert r[key] is not None, key
+        assert math.isclose(r["loop_c_to_master"], r["loop_c_us_per_step"] / r["cosim_us_per_step"])
     printed = capsys.readouterr().out
     assert "us/step" in printed and "samples/s" in printed
     # refusing to overwrite

@@ -2,9 +2,10 @@
  * libcosimc.so of the libcosimpy wheel; libcosim's C API, declared here from its documented
  * signatures: only what this program calls).
  *
- *   libcosim_run SSP STEP_NS STOP_NS
+ *   libcosim_run SSP STEP_NS STOP_NS [INSTANCE.VARIABLE]...
  *
- * prints "row t x us uc x_target" per communication point (C99 hex doubles), then
+ * prints "row t" and the Real columns (default: Actuator.x Sensor.us Compensator.uc
+ * Compensator.x_target) per communication point (C99 hex doubles), then
  * "us_per_step <wall time of simulate_until per step>" and "status ok". libcosim steps the FMUs
  * from its worker threads; times are integer nanoseconds.
  */
@@ -94,15 +95,24 @@ int main(int argc, char **argv)
     cosim_execution *e = cosim_ssp_fixed_step_execution_create(argv[1], false, 0, step);
     if (!e)
         die("execution");
-    const char *cols[4][2] = {{"Actuator", "x"}, {"Sensor", "us"}, {"Compensator", "uc"}, {"Compensator", "x_target"}};
-    int idx[4];
-    uint32_t vr[4];
+    static const char *defaults[] = {"Actuator.x", "Sensor.us", "Compensator.uc", "Compensator.x_target"};
+    int n_cols = argc > 4 ? argc - 4 : 4;
+    if (n_cols > 16)
+        return 2;
+    int idx[16];
+    uint32_t vr[16];
     cosim_observer *o = cosim_time_series_observer_create();
     if (!o || cosim_execution_add_observer(e, o) != 0)
         die("observer");
-    for (int c = 0; c < 4; c++) {
-        idx[c] = slave_index(e, cols[c][0]);
-        vr[c] = value_reference(e, idx[c], cols[c][1]);
+    for (int c = 0; c < n_cols; c++) {
+        char col[2048];
+        snprintf(col, sizeof col, "%s", argc > 4 ? argv[4 + c] : defaults[c]);
+        char *dot = strchr(col, '.');
+        if (!dot)
+            return 2;
+        *dot = '\0';
+        idx[c] = slave_index(e, col);
+        vr[c] = value_reference(e, idx[c], dot + 1);
         if (cosim_observer_start_observing(o, idx[c], REAL, vr[c]) != 0)
             die("observe");
     }
@@ -112,15 +122,19 @@ int main(int argc, char **argv)
         die("simulate");
     clock_gettime(CLOCK_MONOTONIC, &t1);
     size_t m = (size_t)(stop / step) + 2;
-    double *val[4];
+    double *val[16];
     int64_t *steps = calloc(m, sizeof *steps), *times = calloc(m, sizeof *times), count = -1;
-    for (int c = 0; c < 4; c++) {
+    for (int c = 0; c < n_cols; c++) {
         val[c] = calloc(m, sizeof(double));
         int64_t got = cosim_observer_slave_get_real_samples(o, idx[c], vr[c], 0, m, val[c], steps, times);
         count = count < 0 || got < count ? got : count;
     }
-    for (int64_t k = 0; k < count; k++)
-        printf("row %a %a %a %a %a\n", times[k] * 1e-9, val[0][k], val[1][k], val[2][k], val[3][k]);
+    for (int64_t k = 0; k < count; k++) {
+        printf("row %a", times[k] * 1e-9);
+        for (int c = 0; c < n_cols; c++)
+            printf(" %a", val[c][k]);
+        printf("\n");
+    }
     double wall = (t1.tv_sec - t0.tv_sec) + 1e-9 * (t1.tv_nsec - t0.tv_nsec);
     printf("us_per_step %.4f\n", wall / (double)(stop / step) * 1e6);
     cosim_execution_destroy(e);
