@@ -610,7 +610,15 @@ static void free_instance(pz_instance *I)
 
 static fmi2Status call(pz_instance *I, const char *method)
 {
-    ENTER(method);
+    pz_gil g;
+    if (enter(&g) != 0) {
+        if (strcmp(method, "terminate") == 0) {
+            /* a host tearing down at exit (or after finalizing its Python): nothing left to do */
+            logf_(I, fmi2OK, "terminate: Python is no longer available; nothing to terminate");
+            return fmi2OK;
+        }
+        return gone(I, method);
+    }
     fmi2Status st = invoke(I, NULL, method, "()");
     leave(&g);
     return st;
