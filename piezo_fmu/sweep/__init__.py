@@ -53,7 +53,8 @@ def _needs_fmus(spec: SweepSpec) -> bool:
     return "cosim" in engines and spec.experiment["fmu_dir"] is None
 
 
-def sweep(spec, out, scheduler=None, workers=None, resume=False, force=False, progress=None) -> dict:
+def sweep(spec, out, scheduler=None, workers=None, resume=False, force=False, progress=None,
+          report=True) -> dict:
     """Run a sweep: every run of ``spec`` into ``out/results.parquet``, then ``out/report.html``.
 
     Parameters
@@ -76,6 +77,8 @@ def sweep(spec, out, scheduler=None, workers=None, resume=False, force=False, pr
     progress : callable, optional
         ``progress(fraction, message)``: a stage (fraction ``None``) or the share of the runs to
         compute that are done.
+    report : bool
+        Write ``report.html`` and its figures at the end (``write_report`` does it later).
 
     Returns
     -------
@@ -83,7 +86,7 @@ def sweep(spec, out, scheduler=None, workers=None, resume=False, force=False, pr
         ``runs`` (in the spec), ``computed`` (by this call), ``ok``, ``error``, ``lost``,
         ``yield`` (with ``yield_low``, ``yield_high``: 95 % interval; with a tolerance),
         ``wall_s`` [s], ``runs_per_s`` (computed / wall time of the runs), ``engine``,
-        ``results`` and ``report`` (paths).
+        ``results`` and ``report`` (paths; ``report`` None without one).
 
     Results are identical (``seconds`` aside) for any number of workers and to a serial run:
     every run depends only on the spec and its index. Ctrl-C keeps every finished row; call again
@@ -109,11 +112,13 @@ def sweep(spec, out, scheduler=None, workers=None, resume=False, force=False, pr
     context = RunContext(spec, fmus)
     computed = 0
     wall_runs = 0.0
+    described = "none: nothing to compute"
     try:
         if todo:
             say(f"{len(todo)} of {spec.n_runs} runs to compute; starting the engine")
             with Engine(scheduler, workers) as engine:
-                say(f"engine: {engine.describe()}; compiling on each worker")
+                described = engine.describe()
+                say(f"engine: {described}; compiling on each worker")
                 engine.warm(warm, context)
                 say(f"running {len(todo)} runs")
                 t_runs = time.perf_counter()
@@ -127,20 +132,22 @@ def sweep(spec, out, scheduler=None, workers=None, resume=False, force=False, pr
                 wall_runs = time.perf_counter() - t_runs
     finally:
         store.close()
-    say("writing the report")
     table = read_results(out)
     data_status = table.column("status").to_pylist()
     summary = {"runs": spec.n_runs, "computed": computed, "ok": data_status.count("ok"),
                "error": data_status.count("error"), "lost": data_status.count("lost"),
                "wall_s": time.perf_counter() - t_start,
                "runs_per_s": computed / wall_runs if computed and wall_runs > 0 else None,
-               "results": str(out / RESULTS)}
+               "engine": described, "results": str(out / RESULTS)}
     if spec.tolerance is not None:
         data = {n: column_array(table, n) for n in table.column_names}
         y, lo, hi = yield_of(int(passes(spec, data).sum()), len(data["index"]))
         summary.update({"yield": y, "yield_low": lo, "yield_high": hi})
-    summary["report"] = str(write_report(out, spec, table, {"computed now": computed,
-                                                            "wall time [s]": round(summary["wall_s"], 1)}))
+    summary["report"] = None
+    if report:
+        say("writing the report")
+        summary["report"] = str(write_report(out, spec, table, {"computed now": computed,
+                                                                "wall time [s]": round(summary["wall_s"], 1)}))
     return summary
 
 

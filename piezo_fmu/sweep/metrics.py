@@ -149,6 +149,8 @@ def _oscillating(t, uc, limits, ref_freq):
 def reversals(u, h) -> int:
     """How often ``u`` turns back by more than ``h`` (a peak or valley counted once it is left by
     ``h``; smaller wiggles ignored)."""
+    u = np.asarray(u, dtype=float)
+    u = u[np.concatenate(([True], np.diff(u) != 0))]        # plateaus: one sample each
     d = np.diff(u)
     turn = np.flatnonzero(np.sign(d[1:]) * np.sign(d[:-1]) < 0) + 1     # local extrema only
     pts = np.concatenate(([u[0]], u[turn], [u[-1]])).tolist()

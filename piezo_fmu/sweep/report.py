@@ -154,11 +154,22 @@ def _plot_against(ax, spec, data, key, metric, fin):
         else:
             ax.plot(x[fin], y[fin], ".", ms=2.5, alpha=0.5)
         if _is_log(spec, key, x):
-            ax.set_xscale("log")
+            _log_x(ax)
+        else:
+            from matplotlib.ticker import MaxNLocator
+
+            ax.xaxis.set_major_locator(MaxNLocator(4))
     ax.set_xlabel(_param_label(spec, key), fontsize=8)
     ax.set_ylabel(_label(metric), fontsize=8)
     ax.tick_params(labelsize=7)
     _maybe_log_y(ax, y[fin])
+
+
+def _log_x(ax):
+    from matplotlib.ticker import NullFormatter
+
+    ax.set_xscale("log")
+    ax.xaxis.set_minor_formatter(NullFormatter())
 
 
 def _median_curve(x, y):
@@ -224,7 +235,7 @@ def _curves(spec, data, fin, metrics, folder):
             if spec.count > 1:
                 ax.fill_between(xs, q[:, 0], q[:, 2], color=line.get_color(), alpha=0.2, lw=0)
         if axis.log:
-            ax.set_xscale("log")
+            _log_x(ax)
         _maybe_log_y(ax, y[fin])
         ax.set_xlabel(_param_label(spec, axis.key), fontsize=8)
         ax.set_ylabel(_label(m), fontsize=8)
@@ -273,11 +284,15 @@ def _against(spec, data, fin, metric, params, folder):
 
     shown = params[:MAX_PANELS]
     rows, cols = _grid_of(len(shown))
-    fig, axs = plt.subplots(rows, cols, figsize=(3.0 * cols, 2.4 * rows), squeeze=False)
+    fig, axs = plt.subplots(rows, cols, figsize=(2.6 * cols, 2.2 * rows), squeeze=False, sharey=True)
     for ax, key in zip(axs.flat, shown):
         _plot_against(ax, spec, data, key, metric, fin)
-    for ax in list(axs.flat)[len(shown):]:
-        ax.axis("off")
+    for k, ax in enumerate(axs.flat):       # one y axis per row: the same metric throughout
+        if k >= len(shown):
+            ax.axis("off")
+        elif k % cols:
+            ax.set_ylabel("")
+            ax.tick_params(labelleft=False)
     name = f"{metric}_vs_parameters.png"
     _save(fig, folder / name)
     return name

@@ -266,13 +266,11 @@ def _check(where, f: Field, value):
     kinds = {"float": "a number", "int": "a whole number", "bool": "true or false", "str": "a string",
              "strs": "a list of strings", "table": "a table { ... }"}
     bad = SpecError(f"{where}: expected {kinds[f.kind]}, got {type(value).__name__} {value!r}")
-    if f.kind == "bool":
-        if not isinstance(value, bool):
-            raise bad
+    if f.kind in ("bool", "str", "table") and not isinstance(value, {"bool": bool, "str": str, "table": dict}[f.kind]):
+        raise bad
+    if f.kind in ("bool", "table"):
         return value
     if f.kind == "str":
-        if not isinstance(value, str):
-            raise bad
         if f.choices and value not in f.choices:
             raise SpecError(f"{where}: {value!r} is not one of {', '.join(f.choices)}")
         return value
@@ -283,10 +281,6 @@ def _check(where, f: Field, value):
             if f.choices and v not in f.choices:
                 raise SpecError(f"{where}: {v!r} is not one of {', '.join(f.choices)}")
         return tuple(dict.fromkeys(value))
-    if f.kind == "table":
-        if not isinstance(value, dict):
-            raise bad
-        return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise bad
     if f.kind == "int":
@@ -296,9 +290,7 @@ def _check(where, f: Field, value):
             value = int(value)
     else:
         value = float(value)
-    if isinstance(value, float) and math.isnan(value):
-        raise SpecError(f"{where}: is NaN")
-    if isinstance(value, float) and math.isinf(value):
+    if isinstance(value, float) and not math.isfinite(value):
         raise SpecError(f"{where}: must be finite, got {value}")
     if f.check == "positive" and not value > 0:
         raise SpecError(f"{where}: must be > 0, got {value}")
@@ -390,9 +382,8 @@ def _grid_axis(key, entry, base, origin):
             raise SpecError(f"{where}: a range needs a numeric key; list the values instead")
         if "unit" in entry and entry["unit"] != unit:
             raise SpecError(f"{where}: unit {entry['unit']!r} given, expected {unit!r}")
-        for k in ("start", "stop"):
-            if k not in entry:
-                raise SpecError(f"{where}: missing {k}")
+        if "start" not in entry or "stop" not in entry:
+            raise SpecError(f"{where}: missing start or stop")
         start = _check(f"{where}.start", Field(unit), entry["start"])
         stop = _check(f"{where}.stop", Field(unit), entry["stop"])
         if ("num" in entry) == ("step" in entry):
