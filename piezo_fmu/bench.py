@@ -74,8 +74,9 @@ from pathlib import Path
 import numpy as np
 
 from .builder import build_all
+from .sweep.throughput import SWEEP_KEYS, measure_throughput
 
-__all__ = ["KEYS", "RUNTIME_KEYS", "SIZES", "format_figures", "run_bench", "runtime_figures"]
+__all__ = ["KEYS", "RUNTIME_KEYS", "SIZES", "SWEEP_KEYS", "format_figures", "run_bench", "runtime_figures"]
 
 KEYS = ("floor_us_per_step", "cosim_us_per_step", "cosim_to_floor", "cosim_realtime_factor",
         "monolithic_samples_per_s", "monolithic_speedup_vs_cosim", "pi_ns_per_sample_operator",
@@ -540,7 +541,9 @@ def run_bench(size="full", model=None, say=None) -> dict:
         say(f"diagnose on a {seconds:g} s, {fs:g} Hz, two-channel recording")
         out["diagnose_s"] = _diagnose_s(model_path, seconds, fs, tmp)
         out["diagnose_recording"] = {"seconds": seconds, "rate_hz": fs, "channels": ["x", "us"]}
-    out["targets"] = {"loop_c_to_master": "<= 1", "loop_libcosim_to_master": "<= 3",
+    say("sweeps on dask (piezo_fmu.sweep.throughput): 1 and 2 workers, 1 and 2 plain processes")
+    out.update(measure_throughput(size, say=say))
+    out["targets"] = {"loop_c_to_master": "<= 1", "loop_libcosim_to_master": "<= 3", "sweep_scaling_efficiency": ">= 0.8",
                       "cosim_command_to_loop": "<= 1.3", "cosim_us_per_step": "<= 10 (compiled)",
                       "cosim_to_floor": "<= 1.5", "cosim_realtime_factor": ">= 3",
                       "monolithic_samples_per_s": ">= 1e6", "monolithic_speedup_vs_cosim": ">= 100",
@@ -605,6 +608,10 @@ def format_figures(r) -> str:
              f"CSV {r['write_csv_s']:.2f} s ({r['write_csv_MB']:.0f} MB), Parquet {r['write_parquet_s']:.2f} s "
              f"({r['write_parquet_MB']:.0f} MB) (target < 5 s)"),
             ("diagnose", f"{r['diagnose_s']:.1f} s for {r['diagnose_recording']['seconds']:g} s at "
-                         f"{r['diagnose_recording']['rate_hz']:g} Hz, 2 channels (target < 60 s)")]
+                         f"{r['diagnose_recording']['rate_hz']:g} Hz, 2 channels (target < 60 s)"),
+            ("sweep on dask, 1 / 2 workers", f"{r['sweep_runs_per_s_1']:.0f} / {r['sweep_runs_per_s_2']:.0f} runs/s "
+             f"({r['sweep_run_ms']:.1f} ms a run), scaling {100 * r['sweep_scaling_efficiency']:.0f} % (goal >= 80 "
+             f"%; 2 plain processes: {100 * r['sweep_machine_scaling_efficiency']:.0f} %), overhead "
+             f"{r['sweep_overhead_per_task_ms']:.0f} ms per task, {100 * r['sweep_overhead_fraction']:.0f} % of 1 worker")]
     width = max(len(a) for a, _ in rows)
     return "\n".join(f"{a:<{width}}  {b}" for a, b in rows)

@@ -109,6 +109,7 @@ class Engine:
         self.scheduler = scheduler
         self.client = None
         self.cluster = None
+        self.tasks = 0              # tasks submitted by map (batches), for measuring the overhead
         if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
             raise UserError(f"--workers: must be a whole number >= 0, got {workers!r}")
         self.serial = workers == 0
@@ -236,6 +237,7 @@ class Engine:
 
     def _map_serial(self, fn, items, context, has_context, catch, progress):
         for pos, item in enumerate(items):
+            self.tasks += 1
             (_, res, _), = _run_batch(fn, context, [(pos, item)], has_context, catch)
             yield pos, res
             if progress is not None:
@@ -269,6 +271,7 @@ class Engine:
             batch = [(p, items[p]) for p in positions]
             key = f"{prefix}-{tokenize(fn, ctx_token, batch, has_context, catch)}"
             fut = client.submit(_run_batch, fn, ctx, batch, has_context, catch, key=key, pure=True)
+            self.tasks += 1
             pending[fut.key] = (fut, positions)
             ac.add(fut)
 

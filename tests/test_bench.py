@@ -4,7 +4,7 @@ import math
 
 import shutil
 
-from piezo_fmu.bench import KEYS, RUNTIME_KEYS
+from piezo_fmu.bench import KEYS, RUNTIME_KEYS, SWEEP_KEYS
 from piezo_fmu.cli import main
 
 
@@ -13,6 +13,8 @@ def test_bench_tiny_writes_every_key(tmp_path, capsys):
     assert main(["bench", "--size", "tiny", "--json", str(out), "--quiet"]) == 0
     r = json.loads(out.read_text())
     for key in KEYS:
+        assert isinstance(r[key], (int, float)) and math.isfinite(r[key]) and r[key] > 0, key
+    for key in SWEEP_KEYS:         # sweeps on dask (issue 13)
         assert isinstance(r[key], (int, float)) and math.isfinite(r[key]) and r[key] > 0, key
     # the figures are consistent with each other
     assert math.isclose(r["cosim_to_floor"], r["cosim_us_per_step"] / r["floor_us_per_step"])

@@ -368,3 +368,21 @@ fmu_dir = "{fmu_dir}"
                       .replace(f'fmu_dir = "{fmu_dir}"', ""))
     m = run_one(mono, 1)
     assert m["stroke_um"] == pytest.approx(rows[1]["stroke_um"], rel=0.01)
+
+
+def test_linked_grid_axis_varies_keys_together():
+    text = """
+[grid]
+"experiment.amplitude, experiment.offset" = [[15.0, 15.0], [30.0, 30.0], [45.0, 45.0]]
+"experiment.freq" = [10.0, 20.0]
+"""
+    spec = loads_spec(text)
+    assert spec.n_runs == 6
+    v = [run_values(spec, i) for i in range(6)]
+    assert all(x["experiment.amplitude"] == x["experiment.offset"] for x in v)
+    assert [x["experiment.amplitude"] for x in v] == [15.0, 15.0, 30.0, 30.0, 45.0, 45.0]
+    assert [c for c, _ in columns(spec)] == ["experiment.amplitude", "experiment.offset", "experiment.freq"]
+    with pytest.raises(SpecError, match="one value per key"):
+        loads_spec(text.replace("[45.0, 45.0]", "[45.0]"))
+    with pytest.raises(SpecError, match="amplifier.R"):
+        loads_spec('[grid]\n"amplifier.R, experiment.freq" = [[-1.0, 10.0]]\n')

@@ -48,8 +48,8 @@ def build_fmus(spec: SweepSpec, out_dir) -> dict:
 def _needs_fmus(spec: SweepSpec) -> bool:
     engines = {spec.experiment["engine"]}
     for axis in spec.grid:
-        if axis.key == "experiment.engine":
-            engines |= set(axis.values)
+        if "experiment.engine" in axis.keys:
+            engines |= {axis.at(k)["experiment.engine"] for k in range(len(axis.values))}
     return "cosim" in engines and spec.experiment["fmu_dir"] is None
 
 

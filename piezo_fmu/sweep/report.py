@@ -9,8 +9,8 @@ What a designer looks at first:
 * **each metric against each varied parameter** (``<metric>_vs_parameters.png``): scatter, lines
   for grid axes, strips for categories;
 * **yield** (``yield.png``, with a tolerance): the histogram of the tolerance metric with its
-  limit, the share of runs that pass with a 95 % (Wilson) interval, and the rank correlation of
-  each varied parameter with the metric: which tolerances matter;
+  limit, the share of runs that pass with a 95 % (Wilson) interval, and how much of the metric
+  each varied parameter explains (:func:`sensitivity`): which tolerances matter;
 * **the worst runs** with their values, and the errors grouped by message.
 """
 from __future__ import annotations
@@ -79,17 +79,25 @@ def _ranks(v):
     return r
 
 
-def sensitivity(x, y) -> float:
-    """Spearman rank correlation of ``x`` and ``y`` over the finite pairs (NaN if < 3 or flat)."""
+def sensitivity(x, y, bins=10) -> float:
+    """How much of ``y`` a parameter ``x`` explains: the correlation ratio (eta squared) of the
+    ranks of ``y`` over ``bins`` quantile bins of ``x``, in 0..1 (NaN if under 3 finite pairs or
+    flat). Unlike a rank correlation it also sees a V-shaped dependence (an error that grows with
+    the distance from the nominal value either way). With ``n`` runs, chance alone gives about
+    ``(bins - 1) / n``."""
     x = np.asarray(x, float)
     y = np.asarray(y, float)
     m = np.isfinite(x) & np.isfinite(y)
     if m.sum() < 3:
         return math.nan
-    a, b = _ranks(x[m]), _ranks(y[m])
-    if np.std(a) == 0 or np.std(b) == 0:
+    rx, ry = _ranks(x[m]), _ranks(y[m])
+    if np.std(rx) == 0 or np.std(ry) == 0:
         return math.nan
-    return float(np.corrcoef(a, b)[0, 1])
+    group = np.minimum((rx * bins / rx.size).astype(int), bins - 1)
+    total = np.sum((ry - ry.mean()) ** 2)
+    between = sum(np.sum(group == g) * (ry[group == g].mean() - ry.mean()) ** 2
+                  for g in np.unique(group))
+    return float(between / total)
 
 
 def _label(name):
@@ -110,7 +118,7 @@ def _param_label(spec, key):
 
 
 def _is_log(spec, key, values):
-    axis = next((a for a in spec.grid if a.key == key), None)
+    axis = next((a for a in spec.grid if key in a.keys), None)
     if axis is not None:
         return axis.log
     v = values[np.isfinite(values)] if values.dtype != object else np.array([])
@@ -119,12 +127,15 @@ def _is_log(spec, key, values):
 
 def _grid_groups(spec, data, key):
     """Labels of the other grid axes' combinations, per run (None if too many or none)."""
-    others = [a for a in spec.grid if a.key != key]
+    others = [k for a in spec.grid if key not in a.keys for k in a.keys]
     if not others:
         return None
-    labels = np.array([", ".join(f"{a.key.split('.')[-1]}={data[a.key][i]:g}" if isinstance(data[a.key][i], float)
-                                 else f"{a.key.split('.')[-1]}={data[a.key][i]}" for a in others)
-                       for i in range(len(data["index"]))], dtype=object)
+
+    def text(k, v):
+        return f"{k.split('.')[-1]}={v:g}" if isinstance(v, float) else f"{k.split('.')[-1]}={v}"
+
+    labels = np.array([", ".join(text(k, data[k][i]) for k in others) for i in range(len(data["index"]))],
+                      dtype=object)
     return labels if len(set(labels)) <= MAX_LINES else None
 
 
@@ -143,7 +154,7 @@ def _plot_against(ax, spec, data, key, metric, fin):
             ax.plot(j + jitter, y[sel], ".", ms=3, alpha=0.6)
         ax.set_xticks(range(len(cats)), [str(c) for c in cats])
     else:
-        groups = _grid_groups(spec, data, key) if any(a.key == key for a in spec.grid) else None
+        groups = _grid_groups(spec, data, key) if any(key in a.keys for a in spec.grid) else None
         if groups is not None:
             for g in dict.fromkeys(groups[fin]):
                 sel = fin & (groups == g)
@@ -211,7 +222,7 @@ def _save(fig, path, bottom_in=0.0, tight=False):
 def _curves(spec, data, fin, metrics, folder):
     import matplotlib.pyplot as plt
 
-    axes = [a for a in spec.grid if len(a.values) >= 5 and not isinstance(a.values[0], str)]
+    axes = [a for a in spec.grid if len(a.values) >= 5 and len(a.keys) == 1 and not isinstance(a.values[0], str)]
     if not axes:
         return None
     axis = max(axes, key=lambda a: len(a.values))
@@ -331,16 +342,16 @@ def _yield_figure(spec, data, fin, params, ok, folder):
     ax = axs[1]
     metric = t.metric if t.metric != "stable" else "rms_um"
     if numeric and metric in data:
-        rho = [sensitivity(data[k][fin], data[metric][fin]) for k in numeric]
-        order = np.argsort([-abs(r) if np.isfinite(r) else 0 for r in rho])[:MAX_PANELS]
+        eta = [sensitivity(data[k][fin], data[metric][fin]) for k in numeric]
+        order = np.argsort([-r if np.isfinite(r) else 0 for r in eta])[:MAX_PANELS]
         keys = [numeric[i] for i in order][::-1]
-        vals = [rho[i] for i in order][::-1]
-        ax.barh(range(len(keys)), vals, color=["C3" if v > 0 else "C0" for v in vals])
+        vals = [eta[i] for i in order][::-1]
+        ax.barh(range(len(keys)), vals, color="C0")
         ax.set_yticks(range(len(keys)), keys, fontsize=7)
-        ax.axvline(0, color="k", lw=0.6)
-        ax.set_xlim(-1, 1)
-        ax.set_xlabel(f"rank correlation with {metric}", fontsize=8)
-        ax.set_title("which parameters matter", fontsize=8)
+        ax.axvline(9 / max(int(fin.sum()), 1), color="0.5", lw=0.8, ls="--")      # chance level
+        ax.set_xlim(0, 1)
+        ax.set_xlabel(f"share of the variance of {metric} (ranks) explained", fontsize=8)
+        ax.set_title("which parameters matter (dashed: chance)", fontsize=8)
         ax.tick_params(labelsize=7)
     else:
         ax.axis("off")

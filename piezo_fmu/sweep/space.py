@@ -63,7 +63,7 @@ def run_values(spec: SweepSpec, index: int) -> dict:
     g, j = point(spec, index)
     out = {}
     for axis, k in zip(spec.grid, np.unravel_index(g, [len(a.values) for a in spec.grid]) if spec.grid else ()):
-        out[axis.key] = axis.values[int(k)]
+        out.update(axis.at(int(k)))
     out.update(draw_values(spec, j))
     return out
 
@@ -74,7 +74,7 @@ def columns(spec: SweepSpec) -> list:
     from ..model import key_spec
 
     out = []
-    for key in [a.key for a in spec.grid] + [d.key for d in spec.draws]:
+    for key in [k for a in spec.grid for k in a.keys] + [d.key for d in spec.draws]:
         d = next((d for d in spec.draws if d.key == key), None)
         if d is not None and d.size is not None:
             out += [(f"{key}[{i}]", "float") for i in range(1, d.size + 1)]
