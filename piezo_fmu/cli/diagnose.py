@@ -19,11 +19,13 @@ def summary(res):
     for f in res["findings"]:
         where = f["where"][0] if f["where"] else None
         lines.append(f"  {f['effect']:<24} confidence {f['confidence']:.2f}  {f['parameters']}"
-                     + (f"  e.g. {where['t0']:.3g}-{where['t1']:.3g} s" if where else ""))
+                     + (f"  e.g. {where['t0_s']:.3g}-{where['t1_s']:.3g} s" if where else ""))
         rival = f["evidence"].get("strongest_alternative")
         if rival and rival["passed"]:
             lines.append(f"  {'':<24} (the data nearly as well support {rival['effect']}: explains "
                          + ", ".join(f"{c} {100 * v:.0f} %" for c, v in rival["explained_share"].items()) + ")")
+    for c in res.get("candidates", []):
+        lines.append(f"  candidate {c['effect']:<14} confidence {c['confidence']:.2f} (below 0.5: not in the model)")
     for u in res["unexplained"]:
         lines.append(f"  unexplained ({u['channel']}): {u['description']}")
     return "\n".join(lines)

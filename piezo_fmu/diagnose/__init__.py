@@ -17,7 +17,7 @@ __all__ = ["diagnose"]
 
 
 def diagnose(recordings, model=None, out=None, *, force=False, columns=None, scale=None, say=None,
-             figures=True):
+             figures=True, time_budget_s=40.0):
     """Diagnose recording files against a model; write the results into ``out`` when given.
 
     Parameters
@@ -37,6 +37,9 @@ def diagnose(recordings, model=None, out=None, *, force=False, columns=None, sca
         ``say(message)`` for progress messages.
     figures : bool
         Write the PNG figures (report.html embeds them).
+    time_budget_s : float or None
+        Seconds of analysis after which no further candidate search is started (what was found
+        stays; diagnosis.json says so); ``None``: no limit.
 
     Returns
     -------
@@ -53,7 +56,7 @@ def diagnose(recordings, model=None, out=None, *, force=False, columns=None, sca
         check_outputs(out, force)
     raw = load_recordings(recordings, columns, scale)
     base = load_model(model)
-    diag = analyse(raw, base, say=say)
+    diag = analyse(raw, base, say=say, time_budget_s=time_budget_s)
     if out is not None:
         t0 = time.perf_counter()
         write_outputs(diag, out, force=force, say=say, figures=figures)

@@ -64,10 +64,12 @@ CATALOGUE = {m.name: m for m in (
         "delay T [s]", ("amplifier.delay",), ("x", "us")),
     Mechanism(
         "extra_resonance", "A further lightly damped mechanical mode",
-        "x -> wn^2 / (s^2 + 2 zeta wn s + wn^2) x (unity DC gain, in series with the mechanics)",
+        "x -> wn^2 / (s^2 + 2 zeta wn s + wn^2) x (unity DC gain, in series with the mechanics' "
+        "first mode, which the recalibration fits)",
         "ringing at f_n after steps and a peak of the residual spectrum at f_n, coherent with the "
-        "input; in the displacement only (the sensor measures the stack force before the mode)",
-        "f_n [Hz], zeta [1]", ("resonance.f_n", "resonance.zeta"), ("x",)),
+        "input, at a frequency other than the first mode's; in the displacement, and in the sensor "
+        "voltage when the sensor follows the push rod (contact or load pick-off)",
+        "f_n [Hz], zeta [1]", ("resonance.f_n", "resonance.zeta"), ("x", "us")),
     Mechanism(
         "thermal_drift", "Slow offset drift (thermal)",
         "x += rate t + curvature t^2 (time since the start of the recording)",
@@ -96,19 +98,23 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
     if name == "creep":
         if struct.creep_order >= 2:
             return None
-        # one element more than now: every element re-screened (taus on a grid, gains solved)
-        taus = _log_grid(max(0.02, 20 * dt), 2.0 * T, 11)
-        order = struct.creep_order + 1
-        sets = [(t,) for t in taus] if order == 1 else \
-            [(a, b) for i, a in enumerate(taus) for b in taus[i + 1:] if b / a >= 2.5]
-        best, best_c = None, math.inf
+        # one element more than now (or, from none, one or two at once: creep that spans decades,
+        # logarithmic in time, needs both); every element re-screened (taus on a grid, gains solved)
+        taus = _log_grid(max(0.005, 10 * dt), 2.0 * T, 13)
+        pairs = [(a, b) for i, a in enumerate(taus) for b in taus[i + 1:] if b / a >= 2.5]
+        sets = ([(t,) for t in taus] + pairs) if struct.creep_order == 0 else pairs
+        best = {}
         for cost, gains, tset in _quick_creep_sets(fitter, p, sets):
-            if all(g > 0 for g in gains) and cost < best_c:
-                best_c, best = cost, list(zip(gains, tset))
-        if best is None:
+            if all(g > 0 for g in gains) and cost < best.get(len(tset), (math.inf,))[0]:
+                best[len(tset)] = (cost, list(zip(gains, tset)))
+        if not best:
             return None
+        # two elements at once only when they beat one clearly (BIC, effective sample size)
+        if 1 in best and 2 in best and fitter.n_eff * math.log(best[1][0] / max(best[2][0], 1e-300)) \
+                < 2 * math.log(max(fitter.n_eff, 2.0)) + 10.0:
+            best.pop(2)
         q = p.copy()
-        q.creep = best
+        q.creep = best[max(best)][1]
         return q
     if name == "sensor_leakage":
         if "us" not in chans or math.isfinite(p.tau_leak):
@@ -119,9 +125,13 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
     if name == "amplifier_current_limit":
         if math.isfinite(p.slew):
             return None
-        rmax = max(float(np.max(np.abs(np.diff(amplifier_output(r, fitter.dev, p))))) / r.dt
-                   for r in fitter.recs)
-        grid = [{"slew": s} for s in _log_grid(0.02 * rmax, 0.9 * rmax, 12)]
+        # a current limit slows the steps the lag had been fitted to: faster lags with it too
+        grid = []
+        for k in (1.0, 0.4, 0.15):
+            q = _with(p, tau=max(p.tau * k, fitter.bounds("tau")[0]), tau2=p.tau2 * k)
+            rmax = max(float(np.max(np.abs(np.diff(amplifier_output(r, fitter.dev, q))))) / r.dt
+                       for r in fitter.recs)
+            grid += [{"slew": s, "tau": q.tau, "tau2": q.tau2} for s in _log_grid(0.02 * rmax, 0.9 * rmax, 10)]
         best, _ = fitter.grid(p, grid)
         return best
     if name == "time_delay":
@@ -147,19 +157,23 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
                 best, best_c = q, c
         return best
     if name == "extra_resonance":
-        if "x" not in chans or p.res is not None:
+        if p.res is not None:
             return None
         fmax = 0.45 / dt
         fs = _log_grid(10.0, fmax, 12)
-        for pk in ctx.get("x_peaks", []):
+        for pk in ctx.get("peaks", []):
             if 5.0 < pk < fmax:
-                fs += [pk * 0.97, pk, pk * 1.03]
+                # a fine comb around each peak of the residual: a lightly damped mode is narrow
+                fs += [pk * (1 + 0.004 * k) for k in range(-3, 4)]
         # the mode adds phase lag below f_n that the amplifier lag had absorbed: the best grid
         # points get their lag re-searched
-        scored = sorted((fitter.quick(_with(p, res=(f, z))), f, z) for f in fs for z in (0.015, 0.06))
+        # where it acts: after the mechanics (displacement) or on the drive (every channel)
+        places = ("output", "drive") if "us" in chans else ("output",)
+        scored = sorted((fitter.quick(_with(p, res=(f, z), res_at=at)), f, z, at)
+                        for f in fs for z in (0.005, 0.015, 0.06) for at in places)
         best, best_c = None, math.inf
-        for _, f, z in scored[:3]:
-            q, c = fitter.fit_scalar(_with(p, res=(f, z)), struct, "tau", quick=True,
+        for _, f, z, at in scored[:3]:
+            q, c = fitter.fit_scalar(_with(p, res=(f, z), res_at=at), struct, "tau", quick=True,
                                      bounds=(max(fitter.bounds("tau")[0], p.tau / 5), p.tau * 2), xatol=0.03)
             if c < best_c:
                 best, best_c = q, c
@@ -169,7 +183,7 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
             return None
         return p.copy()          # linear: screened by Fitter.quick(drift=True), fitted exactly
     if name == "hysteresis_shape":
-        if "hysteresis_shape" in struct.effects:
+        if "hysteresis_shape" in struct.effects or struct.refined:
             return None
         r = np.asarray(p.thresholds, float)
         mids = 0.5 * (r[1:] + r[:-1])
@@ -189,27 +203,27 @@ def _with(p, **kw):
 
 
 def _lag_profile(fitter: Fitter, p, struct, delay, tau0):
-    """Best amplifier lag for a given delay, the weights re-solved at each point (variable
-    projection): three lags and a parabola in log tau. Returns the parameters and the cost."""
+    """Best amplifier lag for a given delay (the screening: weights held, each channel's gain and
+    offset re-solved): three lags and a parabola in log tau. Returns the parameters and the cost."""
     lo = fitter.bounds("tau")[0]
 
     def at(x):
         q = p.copy()
         q.delay = delay
         q.tau = math.exp(x)
-        r = fitter.varpro(q, struct)
-        return q, float(r @ r)
+        return q, fitter.quick(q)
 
-    xs = [math.log(max(tau0 * f, lo)) for f in (0.5, 1.0, 2.0)]
+    xs = sorted({math.log(max(tau0 * f, lo)) for f in (0.5, 1.0, 2.0)})
     pts = [at(x) for x in xs]
     cs = [c for _, c in pts]
     best = pts[int(np.argmin(cs))]
-    a = np.polyfit(xs, cs, 2)
-    if a[0] > 0:
-        x_star = min(max(-a[1] / (2 * a[0]), xs[0] - 0.7), xs[-1] + 0.7)
-        cand = at(x_star)
-        if cand[1] < best[1]:
-            best = cand
+    if len(xs) == 3:
+        a = np.polyfit(xs, cs, 2)
+        if a[0] > 0:
+            x_star = min(max(-a[1] / (2 * a[0]), xs[0] - 0.7), xs[-1] + 0.7)
+            cand = at(x_star)
+            if cand[1] < best[1]:
+                best = cand
     return best
 
 
@@ -293,7 +307,7 @@ def _own_channel_share(fitter: Fitter, p0, p1, ch):
     re-solved on that channel alone (the other channel weighted out). A mechanism acting on one
     channel must pass this: otherwise its gain came from the other channel via shared parameters.
     ``None`` when only ``ch`` is recorded (then the joint fit already is the own-channel fit)."""
-    from .engine import solve_linear
+    from .varpro import solve_linear
 
     if not all(getattr(r, c) is not None for r in fitter.recs for c in ("x", "us")):
         return None
@@ -315,7 +329,8 @@ def _own_channel_share(fitter: Fitter, p0, p1, ch):
 def _drift_in_sensor(fitter: Fitter, p):
     """How much of the fitted displacement drift also shows in the sensor residual, relative to a
     trend of the force itself (1: all of it, 0: none); ``None`` without a sensor channel."""
-    us_per_x = p.S * fitter.dev.k_force / fitter.dev.mech_gain
+    dev = fitter.dev
+    us_per_x = p.S * (dev.k_force / dev.mech_gain if p.pick == "stack" else dev.k_load)
     es, ds = [], []
     for r in fitter.recs:
         if r.us is None or r.x is None:
@@ -335,16 +350,37 @@ def _drift_in_sensor(fitter: Fitter, p):
     return float((e - np.mean(e)) @ d / dd)
 
 
-def spectral_peaks(e, fs, n=3):
-    """Frequencies of the largest local maxima of the residual spectrum above 5 Hz."""
-    f, pw = psd(e, fs)
-    ok = f > 5.0
-    f, pw = f[ok], pw[ok]
-    if f.size < 3:
+def residual_peaks(fitter: Fitter, p, n=3):
+    """Peaks of the residual spectrum of every recorded channel (see :func:`spectral_peaks`)."""
+    out = []
+    for r in fitter.recs:
+        pr = predict(r, fitter.dev, p, direct=True)
+        for c in r.channels():
+            out += spectral_peaks(getattr(r, c) - pr[c], 1 / r.dt, n)
+    return sorted({round(f, 4) for f in out})
+
+
+def spectral_peaks(e, fs, n=3, fmin=5.0):
+    """Frequencies [Hz] of the largest local maxima of the residual spectrum above ``fmin``.
+
+    Fine resolution (segments of up to 1/0.2 Hz, i.e. 5 s, or the whole record) and a parabola
+    through each peak's log-power: a lightly damped mode's peak is narrower than a coarse bin."""
+    nper = int(min(e.size, 2 ** int(math.ceil(math.log2(max(fs / 0.2, 64))))))
+    f, pw = psd(e, fs, nper)
+    if f.size < 4:
         return []
-    loc = np.nonzero((pw[1:-1] > pw[:-2]) & (pw[1:-1] > pw[2:]))[0] + 1
+    lp = np.log(np.maximum(pw, 1e-300))
+    loc = np.nonzero((lp[1:-1] > lp[:-2]) & (lp[1:-1] > lp[2:]))[0] + 1
+    loc = loc[f[loc] > fmin]
     loc = loc[np.argsort(-pw[loc])][:n]
-    return [float(f[k]) for k in loc]
+    df = f[1] - f[0]
+    out = []
+    for k in loc:
+        a, b, c = lp[k - 1], lp[k], lp[k + 1]
+        den = a - 2 * b + c
+        off = 0.5 * (a - c) / den if den < 0 else 0.0
+        out.append(float(f[k] + np.clip(off, -0.5, 0.5) * df))
+    return out
 
 
 def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
@@ -391,6 +427,10 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
             return False, f"damping ratio {z:.2f}: not a lightly damped mode (it only adds phase lag)"
         if f > 0.45 / dt:
             return False, "above the Nyquist frequency"
+        f1 = p_after.mode(fitter.dev)[0]
+        if "mech_f" in fitter.ordinary and abs(math.log(f / f1)) < math.log(1.2):
+            return False, (f"at the first mode ({f1:.4g} Hz, recalibrated): it re-fits that mode, it is "
+                           "not a further one")
         return True, ""
     if name == "thermal_drift":
         tt = np.linspace(0.0, T, 200)
@@ -423,7 +463,7 @@ def describe_parameters(name, p, dev, dt):
     if name == "time_delay":
         return {"delay_s": float(f"{round(p.delay / dt) * dt:.6g}"), "samples": int(round(p.delay / dt))}
     if name == "extra_resonance":
-        return {"f_n_Hz": float(f"{p.res[0]:.5g}"), "zeta": float(f"{p.res[1]:.4g}")}
+        return {"f_n_Hz": float(f"{p.res[0]:.5g}"), "zeta": float(f"{p.res[1]:.4g}"), "position": p.res_at}
     if name == "thermal_drift":
         return {"rate_per_s": float(f"{p.rate:.5g}"), "curvature_per_s2": float(f"{p.curv:.5g}")}
     if name == "hysteresis_shape":

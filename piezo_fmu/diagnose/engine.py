@@ -2,52 +2,53 @@
 
 :func:`predict` computes what ``simulate(model, Signal("table", t, u, column="u"), mode="open",
 step=dt, noise=False)`` computes for a recorded command ``u`` sampled at ``dt`` (the command held
-over each sample, the device relaxed at zero command before the first sample), but splits the
-device at its only nonlinearity that is not linear in its parameters:
+over each sample, the device relaxed at zero command before the first sample), plus the channels'
+sampling lags, but splits the device at its only nonlinearity that is not linear in its parameters:
 
-* ``ua`` (delay, amplifier lag, current limit, rails) by the core's own :func:`~piezo_fmu.core.plant.amp_step`
-  compiled with numba;
+* ``ua`` (delay, the amplifier's optional input stage, its output stage with current limit and
+  rails) by the core's own :func:`~piezo_fmu.core.plant.amp_step` compiled with numba;
 * the play-operator outputs ``z_i[ua / u_norm]`` (``N x n``, numba);
-* everything after the hysteresis is linear in the PI weights: creep, mechanics (with the optional
-  further mode) for ``x``, leakage for ``us``. These are the core's continuous blocks discretised
-  exactly as the core does (first-order hold, :func:`~piezo_fmu.core.linear.discretize`), applied as
-  IIR filters to every operator column at once.
+* everything after the hysteresis is linear in the PI weights: creep, the mechanics (first mode,
+  optional further mode) for ``x``; creep, then the stack force (pick-off ``stack``) or the load
+  spring's force (``load``: through the mechanics), then leakage for ``us``. These are the core's
+  continuous blocks discretised exactly as the core does (first-order hold,
+  :func:`~piezo_fmu.core.linear.discretize`), applied as IIR filters to every operator column at
+  once; a channel's sampling lag shifts its samples.
 
 So for given dynamics the displacement and sensor voltage are linear in the PI weights, the
-channel offsets, the drift polynomial and (bilinearly) the sensor sensitivity: :func:`solve_linear`
-finds them by bounded linear least squares (variable projection), which keeps the nonlinear
-searches of :mod:`.fit` one- to four-dimensional.
+channel offsets, the drift polynomial and (bilinearly) the sensor sensitivity:
+:func:`.varpro.solve_linear` finds them by bounded linear least squares (variable projection),
+which keeps the nonlinear searches of :mod:`.fit` small.
 
 The physics stays in :mod:`piezo_fmu.core`; this module re-arranges it for speed and is checked
 against ``simulate`` sample by sample (tests/test_diagnose.py).
 """
 from __future__ import annotations
 
-import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, solve_triangular
-from scipy.optimize import lsq_linear
 from scipy.signal import lfilter, sosfilt, ss2tf, tf2sos
 
 from ..core import plant
 from ..core.linear import discretize, tf2ss
-from ..core.plant import EPS0, mechanics_tf
+from ..core.plant import mechanics_tf, mode_tf, series_tf
+from .model_io import Device, Params, Recording, device_from_model, model_from_params, params_from_model
 
 __all__ = [
     "Device",
     "Params",
     "Recording",
     "amplifier_output",
+    "chain",
     "device_from_model",
     "model_from_params",
     "operators",
     "params_from_model",
     "predict",
-    "solve_linear",
+    "shift",
 ]
 
 
@@ -60,12 +61,20 @@ def _kernels():
     amp_step = numba.njit(cache=True, nogil=True)(plant.amp_step)
 
     @numba.njit(cache=True, nogil=True)
-    def amp_run(uc, nd, k_amp, tau, slew, u_min, u_max, h, out):
+    def amp_run(uc, nd, k_amp, tau, slew, u_min, u_max, h, tau2, out):
+        # the core's actuator_step up to ua (delay line, input stage, output stage)
         decay = math.exp(-h / tau)
+        d2 = math.exp(-h / tau2) if tau2 > 0.0 else 0.0
+        m2 = (tau2 / h) * (1.0 - d2) if tau2 > 0.0 else 0.0
         ua = 0.0
+        y = 0.0
         out[0] = 0.0
         for k in range(uc.size - 1):
             c = uc[k - nd] if k >= nd else 0.0
+            if tau2 > 0.0:
+                e2 = y - c
+                y = c + e2 * d2
+                c = c + e2 * m2
             target = k_amp * c
             if target < u_min:
                 target = u_min
@@ -114,83 +123,6 @@ def _kernels():
     return amp_run, play_run, pi_run
 
 
-# -- the device -----------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Device:
-    """Constants of the model that diagnose never changes (taken from the nominal model)."""
-
-    k_amp: float
-    C_a: float
-    u_min: float
-    u_max: float
-    m: float
-    c: float
-    k_a: float
-    k_f: float
-    C_sensor: float        # C_s + C_load [F]
-
-    @property
-    def k_force(self):
-        return self.k_a * 1e-6
-
-    @property
-    def mech_gain(self):
-        """Static displacement per free stroke (k_a / (k_a + k_f))."""
-        return self.k_a / (self.k_a + self.k_f)
-
-
-@dataclass
-class Params:
-    """Everything diagnose may fit (SI units; displacements in the recording's x units)."""
-
-    tau: float                       # amplifier R C_a [s]
-    u_norm: float                    # PI input normalisation [V]
-    thresholds: np.ndarray           # normalised
-    weights: np.ndarray              # free stroke per operator output [um]
-    y_sat: float = math.inf          # strain saturation [um]
-    slew: float = math.inf           # I_max / C_a [V/s]
-    delay: float = 0.0               # [s]
-    creep: list = field(default_factory=list)     # [(gain, tau [s]), ...]
-    res: tuple | None = None         # (f_n [Hz], zeta)
-    off_x: float = 0.0               # drift.offset [um]
-    rate: float = 0.0                # drift.rate [um/s]
-    curv: float = 0.0                # drift.curvature [um/s^2]
-    S: float = 1.0                   # sensor sensitivity [V/N]
-    off_s: float = 0.0               # sensor offset [V]
-    tau_leak: float = math.inf       # [s]
-
-    def copy(self):
-        return copy.deepcopy(self)
-
-
-@dataclass
-class Recording:
-    """One recording in model orientation: ``x`` and ``us`` already multiplied by their sign."""
-
-    name: str
-    t: np.ndarray            # time since the first sample [s]
-    dt: float
-    u: np.ndarray            # amplifier command [V]
-    x: np.ndarray | None
-    us: np.ndarray | None
-    heldout: np.ndarray      # bool per sample
-    t0: float = 0.0          # time of the first sample in the file [s]
-    block: np.ndarray | None = None   # validation block of every sample
-    sign: dict = field(default_factory=dict)   # channel -> +1/-1 (file = sign * model)
-
-    @property
-    def n(self):
-        return self.u.size
-
-    @property
-    def train(self):
-        return ~self.heldout
-
-    def channels(self):
-        return [c for c in ("x", "us") if getattr(self, c) is not None]
-
-
 # -- pieces of the replay -------------------------------------------------------------------------
 
 def amplifier_output(rec: Recording, dev: Device, p: Params) -> np.ndarray:
@@ -198,11 +130,11 @@ def amplifier_output(rec: Recording, dev: Device, p: Params) -> np.ndarray:
     amp_run = _kernels()[0]
     nd = int(round(p.delay / rec.dt)) if p.delay > 0 else 0
     out = np.empty(rec.n)
-    return amp_run(rec.u, nd, dev.k_amp, p.tau, p.slew, dev.u_min, dev.u_max, rec.dt, out)
+    return amp_run(rec.u, nd, dev.k_amp, p.tau, p.slew, dev.u_min, dev.u_max, rec.dt, float(p.tau2), out)
 
 
 def operators(ua: np.ndarray, p: Params) -> np.ndarray:
-    """Play-operator outputs ``(n, N)`` for the stack voltage ``ua``, from the relaxed state."""
+    """Play-operator outputs ``(N, n)`` for the stack voltage ``ua``, from the relaxed state."""
     play_run = _kernels()[1]
     r = np.asarray(p.thresholds, dtype=float)
     z = np.empty((r.size, ua.size))
@@ -245,49 +177,96 @@ def _padd(a, b):
 
 
 @lru_cache(maxsize=512)
-def _chain_sos(channel, creep, res, tau_leak, mech, h):
+def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output"):
     """Second-order sections of the whole linear chain after the hysteresis for one channel.
 
     The core's blocks, each discretised on its own as the core steps them (creep, then mechanics
-    with the optional mode for ``x``; creep, then the force and the leakage for ``us``): composing
-    discrete systems is exact, and one cascaded pass replaces one pass per block. Each block keeps
-    its own sections, so slow poles near z = 1 are never multiplied into ill-conditioned polynomials.
+    with the optional mode for ``x``; creep, then the force (through the mechanics for the load
+    pick-off) and the leakage for ``us``): composing discrete systems is exact, and one cascaded
+    pass replaces one pass per block. Each block keeps its own sections, so slow poles near
+    z = 1 are never multiplied into ill-conditioned polynomials.
     """
     num, den = np.array([1.0]), np.array([1.0])
-    for g, tau in creep:
-        b, a = foh_filter((1.0,), (tau, 1.0), h)
-        # num/den + g b/a = (num a + g b den) / (den a)
-        num = _padd(np.convolve(num, a), g * np.convolve(b, den))
-        den = np.convolve(den, a)
-    blocks = [(num, den)] if creep else []
+    front = None
+    if res is not None and res_at == "drive":
+        # the core discretises creep and the drive's mode as one block, (1 + sum g/(tau s + 1)) M(s);
+        # its discretisation is the sum of those of the parallel terms M and g M / (tau s + 1), each
+        # well conditioned on its own (the product's polynomial is not, with slow creep poles)
+        mn, md = mode_tf(*res)
+        terms = [(mn, md)] + [series_tf((np.array([g]), np.array([tau, 1.0])), (mn, md)) for g, tau in creep]
+        front = []
+        for tn, td in terms:
+            b, a = foh_filter(tuple(float(v) for v in tn), tuple(float(v) for v in td), h)
+            front.append(_sos(b, a))
+        blocks = []
+        res = None
+    else:
+        for g, tau in creep:
+            b, a = foh_filter((1.0,), (tau, 1.0), h)
+            # num/den + g b/a = (num a + g b den) / (den a)
+            num = _padd(np.convolve(num, a), g * np.convolve(b, den))
+            den = np.convolve(den, a)
+        blocks = [(num, den)] if creep else []
     m, c, k_a, k_f = mech
-    if channel == "x":
+    gain = k_a * 1e-6
+    if channel == "x" or pick in ("load", "contact"):
         # the core discretises the mechanics and the optional mode as one block: so do we
         mn, md = mechanics_tf(m, c, k_a, k_f, res)
+        if channel == "us" and pick == "contact":
+            # F_c / F_out = 1 - k_a 1e-6 x / F_out (the core subtracts k_a x from F_out: the same map)
+            mn = _padd(np.asarray(md, float)[::-1], -k_a * 1e-6 * np.asarray(mn, float)[::-1])[::-1]
         blocks.append(foh_filter(tuple(float(v) for v in mn), tuple(float(v) for v in md), h))
-    elif math.isfinite(tau_leak):
+        if channel == "us" and pick == "load":
+            gain *= k_f * 1e-6
+    if channel == "us" and math.isfinite(tau_leak):
         blocks.append(foh_filter((tau_leak, 0.0), (tau_leak, 1.0), h))
-    sos = []
-    gain = k_a * 1e-6
-    for b, a in blocks:
-        b = np.asarray(b, float)
-        a = np.asarray(a, float)
-        b = np.pad(b, (max(0, a.size - b.size), 0))
-        sos.append(tf2sos(b, a))
+    sos = [_sos(b, a) for b, a in blocks]
     if not sos:
-        return None, gain
-    return np.vstack(sos), gain
+        return front, None, gain
+    return front, np.vstack(sos), gain
+
+
+def _sos(b, a):
+    """Second-order sections of ``b/a``: written directly up to order 2 (most blocks), else by
+    :func:`scipy.signal.tf2sos` (which pairs poles and zeros, at a thousand times the cost)."""
+    b = np.asarray(b, float)
+    a = np.asarray(a, float)
+    b = np.pad(b, (max(0, a.size - b.size), 0))
+    if a.size <= 3:
+        row = np.zeros(6)            # [b0 b1 b2 1 a1 a2] in powers of 1/z
+        row[:b.size] = b / a[0]
+        row[3:3 + a.size] = a / a[0]
+        return row[None, :]
+    return tf2sos(b, a)
 
 
 def chain(cols, channel, dev: Device, p: Params, h):
-    """``x`` [um] (channel "x") or the sensor's force [N] (channel "us") from the hysteretic stroke."""
-    sos, gain = _chain_sos(channel, tuple((float(g), float(t)) for g, t in p.creep),
+    """``x`` [um] (channel "x") or the sensor's force [N] (channel "us") from the hysteretic stroke
+    (before the channel's sampling lag)."""
+    front, sos, gain = _chain_sos(channel, tuple((float(g), float(t)) for g, t in p.creep),
                            None if p.res is None else (float(p.res[0]), float(p.res[1])),
                            float(p.tau_leak) if channel == "us" else math.inf,
-                           (dev.m, dev.c, dev.k_a, dev.k_f), float(h))
+                           (float(p.m), float(p.c), dev.k_a, dev.k_f), p.pick, float(h), p.res_at)
+    cols = cols * gain
+    if front is not None:
+        acc = sosfilt(front[0], cols, axis=-1)
+        for f in front[1:]:
+            acc += sosfilt(f, cols, axis=-1)
+        cols = acc
     if sos is None:
-        return cols * gain
-    return sosfilt(sos, cols * gain, axis=-1)
+        return cols
+    return sosfilt(sos, cols, axis=-1)
+
+
+def shift(a, n):
+    """``a`` delayed by ``n`` samples along its last axis, the first value held before it (a
+    channel sampled ``n`` samples late; the device is at rest before the record)."""
+    if n <= 0:
+        return a
+    out = np.empty_like(a)
+    out[..., n:] = a[..., :-n]
+    out[..., :n] = a[..., :1]
+    return out
 
 
 def drift(t, p: Params):
@@ -304,7 +283,7 @@ def _saturate(hx, y_sat):
 class Replay:
     """Intermediate signals of one recording for given dynamics (cached across linear solves)."""
 
-    z: np.ndarray                   # (n, N) operator outputs
+    z: np.ndarray                   # (N, n) operator outputs
     ua: np.ndarray
 
 
@@ -316,9 +295,7 @@ def replay(rec: Recording, dev: Device, p: Params) -> Replay:
 def stroke(rec: Recording, dev: Device, p: Params, rp: Replay | None = None):
     """Hysteretic free stroke ``x_h`` [um] (saturated), from the stored operators or computed directly."""
     if rp is not None:
-        hx = np.zeros(rec.n)
-        for wi, zi in zip(np.asarray(p.weights, float), rp.z):
-            hx += wi * zi
+        hx = np.asarray(p.weights, float) @ rp.z
         return _saturate(hx, p.y_sat)
     ua = amplifier_output(rec, dev, p)
     pi_run = _kernels()[2]
@@ -335,262 +312,10 @@ def predict(rec: Recording, dev: Device, p: Params, rp: Replay | None = None, di
     """
     if direct and rp is None:
         hx = stroke(rec, dev, p)
-        rp = None
     else:
         rp = rp or replay(rec, dev, p)
         hx = stroke(rec, dev, p, rp)
-    out = {"x": chain(hx, "x", dev, p, rec.dt) + drift(rec.t, p),
-           "us": p.S * chain(hx, "us", dev, p, rec.dt) + p.off_s,
+    out = {"x": shift(chain(hx, "x", dev, p, rec.dt) + drift(rec.t, p), p.lag_x),
+           "us": shift(p.S * chain(hx, "us", dev, p, rec.dt) + p.off_s, p.lag_us),
            "ua": rp.ua if rp is not None else None, "x_h": hx}
     return out
-
-
-# -- variable projection: the linear parameters ---------------------------------------------------
-
-def _design(rec, dev, p, rp, lin_w):
-    """Columns (per weight) of x and of the sensor force, plus the known part from saturation."""
-    z = rp.z
-    if math.isfinite(p.y_sat) and lin_w is not None:
-        h0 = lin_w @ z
-        gp = 1.0 / (1.0 + np.abs(h0) / p.y_sat) ** 2
-        c0 = _saturate(h0, p.y_sat) - gp * h0
-        cols = np.vstack([z * gp, c0[None, :]])
-    else:
-        cols = np.vstack([z, np.zeros((1, z.shape[1]))])
-    ax = chain(cols, "x", dev, p, rec.dt) if rec.x is not None else None
-    asf = chain(cols, "us", dev, p, rec.dt) if rec.us is not None else None
-    return ax, asf
-
-
-def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_sensor_gain=True,
-                 replays=None, gn_iter=2, rows="train", want_residuals=True):
-    """Fit the PI weights, offsets, drift and sensor gain for fixed dynamics; update ``p`` in place.
-
-    Minimises ``sum_c lam[c] * ||y_c - model_c||^2`` over the training rows with every partial sum
-    of the weights >= a small positive bound (the model stays invertible; concave loading curves
-    allowed). ``drift_terms``: 0 (offset only), 1 (+ rate) or 2 (+ curvature). The sensor gain
-    (bilinear with the weights) is alternated with them; strain saturation is handled by
-    Gauss-Newton steps from the current weights. Everything after the design matrices works on
-    their small Gram matrices. Returns the weighted residual vector (training rows).
-    """
-    replays = replays or [replay(r, dev, p) for r in recs]
-    n = len(p.thresholds)
-    has_x = any(r.x is not None for r in recs)
-    has_us = any(r.us is not None for r in recs)
-    nd = 1 + drift_terms if has_x else 0
-    n_par = n + nd + (1 if has_us else 0)       # W (partial sums) | x offset, rate, curv | us offset
-    diff = np.eye(n) - np.eye(n, k=-1)          # w = diff @ W
-    lin_w = np.asarray(p.weights, float) if np.any(p.weights) else None
-    iters = 1
-    if math.isfinite(p.y_sat):
-        iters = gn_iter + (1 if lin_w is None else 0)
-    for _ in range(iters):
-        kx, ks = n + 1 + nd, n + 2              # rows of the x and us designs
-        Mx, cx, Ms, cs = np.zeros((kx, kx)), np.zeros(kx), np.zeros((ks, ks)), np.zeros(ks)
-        for r, rp in zip(recs, replays):
-            ax, asf = _design(r, dev, p, rp, lin_w)
-            if r.x is not None:
-                cmat = np.empty((kx, r.n))
-                cmat[:n + 1] = ax
-                if nd >= 1:
-                    cmat[n + 1] = 1.0
-                if nd >= 2:
-                    cmat[n + 2] = r.t
-                if nd >= 3:
-                    cmat[n + 3] = r.t * r.t
-                Mx += _gram(cmat, r, rows)
-                cx += _gram_vec(cmat, r.x, r, rows)
-            if r.us is not None:
-                cmat = np.empty((ks, r.n))
-                cmat[:n + 1] = asf
-                cmat[n + 1] = 1.0
-                Ms += _gram(cmat, r, rows)
-                cs += _gram_vec(cmat, r.us, r, rows)
-        # coefficient maps: c_x = Px theta + qx, c_s = Ps theta + qs
-        Px = np.zeros((kx, n_par))
-        Px[:n, :n] = diff
-        Px[n + 1:, n:n + nd] = np.eye(nd)
-        qx = np.zeros(kx)
-        qx[n] = 1.0
-        S = p.S
-        for _ in range(3 if (has_x and has_us and fit_sensor_gain) else 1):
-            G = np.zeros((n_par, n_par))
-            rhs = np.zeros(n_par)
-            if has_x:
-                G += lam["x"] * (Px.T @ Mx @ Px)
-                rhs += lam["x"] * (Px.T @ (cx - Mx @ qx))
-            if has_us:
-                Ps = np.zeros((ks, n_par))
-                Ps[:n, :n] = S * diff
-                Ps[n + 1, n_par - 1] = 1.0
-                qs = np.zeros(ks)
-                qs[n] = S
-                G += lam["us"] * (Ps.T @ Ms @ Ps)
-                rhs += lam["us"] * (Ps.T @ (cs - Ms @ qs))
-            sol = _bounded_normal_solve(G, rhs, n, scale_hint=_scale_hint(recs, dev, p))
-            w = diff @ sol[:n]
-            if has_x and has_us and fit_sensor_gain:
-                # us = S * (force columns @ w + known) + offset: regression on (prediction, 1)
-                v = np.concatenate([w, [1.0]])
-                pp = v @ Ms[:n + 1, :n + 1] @ v
-                p1 = v @ Ms[:n + 1, n + 1]
-                py = v @ cs[:n + 1]
-                a = np.array([[pp, p1], [p1, Ms[n + 1, n + 1]]])
-                try:
-                    s_new = np.linalg.solve(a, [py, cs[n + 1]])[0]
-                except np.linalg.LinAlgError:
-                    s_new = S
-                if s_new > 0 and np.isfinite(s_new):
-                    S = float(s_new)
-        p.weights = w
-        p.S = S
-        if has_x:
-            p.off_x = float(sol[n])
-            p.rate = float(sol[n + 1]) if drift_terms >= 1 else 0.0
-            p.curv = float(sol[n + 2]) if drift_terms >= 2 else 0.0
-        if has_us:
-            p.off_s = float(sol[n_par - 1])
-        lin_w = w
-    if not want_residuals:
-        return None
-    return residuals(recs, dev, p, lam, replays)
-
-
-def _heldout_runs(r):
-    runs = r.__dict__.get("_ho_runs")
-    if runs is None:
-        ho = np.concatenate([[False], r.heldout, [False]]).astype(np.int8)
-        d = np.diff(ho)
-        runs = list(zip(np.nonzero(d == 1)[0].tolist(), np.nonzero(d == -1)[0].tolist()))
-        r.__dict__["_ho_runs"] = runs
-    return runs
-
-
-def _gram(cmat, r, rows):
-    """``C C^T`` over the training samples: over all samples minus the held-out runs."""
-    g = cmat @ cmat.T
-    if rows == "train":
-        for a, b in _heldout_runs(r):
-            blk = cmat[:, a:b]
-            g -= blk @ blk.T
-    return g
-
-
-def _gram_vec(cmat, y, r, rows):
-    v = cmat @ y
-    if rows == "train":
-        for a, b in _heldout_runs(r):
-            v -= cmat[:, a:b] @ y[a:b]
-    return v
-
-
-def _scale_hint(recs, dev, p):
-    """Rough size of the free stroke [x units] the weights must produce (sets their lower bound)."""
-    spans = [np.ptp(r.x) / dev.mech_gain for r in recs if r.x is not None]
-    spans += [np.ptp(r.us) / max(abs(p.S) * dev.k_force, 1e-300) for r in recs if r.us is not None]
-    return max(max(spans or [1.0]), 1e-12)
-
-
-def _bounded_normal_solve(G, rhs, n_bounded, scale_hint=1.0):
-    """min ||M theta - y|| given ``G = M^T M`` and ``rhs = M^T y``; theta[:n_bounded] >= eps."""
-    d = np.sqrt(np.maximum(np.diag(G), 1e-300))
-    Gs = G / np.outer(d, d)
-    rs = rhs / d
-    jitter = 1e-12
-    for _ in range(6):
-        try:
-            c, low = cho_factor(Gs + jitter * np.eye(len(d)))
-            break
-        except np.linalg.LinAlgError:
-            jitter *= 100
-    R = np.triu(c) if not low else np.tril(c).T
-    q = solve_triangular(R, rs, trans="T")
-    unc = cho_solve((c, low), rs)
-    eps = 1e-6 * scale_hint       # partial sums stay positive after rounding to 8 digits
-    lb = np.full(len(d), -np.inf)
-    lb[:n_bounded] = eps * d[:n_bounded]
-    if np.all(unc[:n_bounded] >= lb[:n_bounded]):
-        return unc / d
-    res = lsq_linear(R, q, bounds=(lb, np.full(len(d), np.inf)), method="bvls", lsmr_tol=None)
-    return res.x / d
-
-
-def residuals(recs, dev, p, lam, replays=None, rows="train"):
-    """Weighted residual vector (measured - model) over the chosen rows of every recording."""
-    out = []
-    for i, r in enumerate(recs):
-        pred = predict(r, dev, p, replays[i] if replays else None)
-        m = r.train if rows == "train" else (r.heldout if rows == "heldout" else np.ones(r.n, bool))
-        for c in r.channels():
-            out.append(math.sqrt(lam[c]) * (getattr(r, c)[m] - pred[c][m]))
-    return np.concatenate(out)
-
-
-# -- model <-> parameters ------------------------------------------------------------------------
-
-def device_from_model(model) -> Device:
-    a, me, s = model["amplifier"], model["mechanics"], model["sensor"]
-    c_s = EPS0 * s["eps_r"] * s["area"] / s["thickness"]
-    return Device(k_amp=a["k_amp"], C_a=a["C_a"], u_min=a["u_min"], u_max=a["u_max"], m=me["m"],
-                  c=me["c"], k_a=me["k_a"], k_f=me["k_f"], C_sensor=c_s + s["C_load"])
-
-
-def params_from_model(model) -> Params:
-    a, h, s = model["amplifier"], model["hysteresis"], model["sensor"]
-    dev = device_from_model(model)
-    cr, res, dr = model["creep"], model["resonance"], model["drift"]
-    return Params(
-        tau=a["R"] * a["C_a"], u_norm=h["u_norm"], thresholds=np.array(h["thresholds"], float),
-        weights=h["scale"] * np.array(h["weights"], float), y_sat=h.get("saturation", math.inf),
-        slew=a.get("I_max", math.inf) / a["C_a"], delay=a.get("delay", 0.0),
-        creep=list(zip(cr.get("gains", []), cr.get("time_constants", []))),
-        res=(res["f_n"], res["zeta"]) if res.get("f_n", 0.0) > 0 else None,
-        off_x=dr.get("offset", 0.0), rate=dr.get("rate", 0.0), curv=dr.get("curvature", 0.0),
-        S=s["d11"] / dev.C_sensor, off_s=s.get("offset", 0.0), tau_leak=s.get("tau_leak", math.inf))
-
-
-def _num(v, digits=8):
-    return float(f"{float(v):.{digits}g}")
-
-
-def model_from_params(base, p: Params, sources: dict, dt=None):
-    """A copy of ``base`` carrying ``p``; ``sources`` maps (section, key) -> provenance text.
-
-    Keys not in ``sources`` get a generic 'fitted by piezo-fmu diagnose' provenance.
-    """
-    m = base.copy()
-    C_a = m["amplifier"]["C_a"]
-
-    def put(sec, key, value, default_src):
-        m.set(sec, key, value, sources.get((sec, key), default_src))
-
-    fitted = "fitted by piezo-fmu diagnose to the recording(s)"
-    put("amplifier", "R", _num(p.tau / C_a), fitted + " (R = tau / C_a, tau the amplifier lag)")
-    put("amplifier", "I_max", _num(p.slew * C_a) if math.isfinite(p.slew) else math.inf,
-        fitted if math.isfinite(p.slew) else "diagnose: no current limit found")
-    delay = p.delay
-    if dt and delay > 0:
-        delay = round(delay / dt) * dt
-    put("amplifier", "delay", _num(delay, 10), fitted if delay > 0 else "diagnose: no latency found")
-    w = np.asarray(p.weights, float)
-    total = float(np.sum(w))
-    put("hysteresis", "u_norm", _num(p.u_norm), "diagnose: input normalisation, the recording's stack-voltage span")
-    put("hysteresis", "thresholds", [_num(v) for v in p.thresholds], "diagnose: the nominal thresholds on the recording's span")
-    put("hysteresis", "scale", _num(total), fitted + " (sum of the weights: stroke per PI unit)")
-    ws = [_num(v) for v in (w / total)]
-    put("hysteresis", "weights", ws, fitted + " (bounded least squares, every partial sum > 0)")
-    put("hysteresis", "saturation", _num(p.y_sat) if math.isfinite(p.y_sat) else math.inf,
-        "diagnose: nominal saturation, scaled with the recalibrated stroke")
-    put("creep", "gains", [_num(g) for g, _ in p.creep], fitted if p.creep else "diagnose: no creep found")
-    put("creep", "time_constants", [_num(t) for _, t in p.creep], fitted if p.creep else "diagnose: no creep found")
-    put("resonance", "f_n", _num(p.res[0]) if p.res else 0.0, fitted if p.res else "diagnose: no further mode found")
-    put("resonance", "zeta", _num(p.res[1]) if p.res else 0.05, fitted if p.res else "default")
-    put("drift", "offset", _num(p.off_x), fitted + " (offset of the displacement channel)")
-    put("drift", "rate", _num(p.rate), fitted if p.rate else "diagnose: no drift found")
-    put("drift", "curvature", _num(p.curv), fitted if p.curv else "diagnose: no drift found")
-    dev = device_from_model(m)
-    put("sensor", "d11", _num(p.S * dev.C_sensor), fitted + " (effective: absorbs the sensor chain's gain)")
-    put("sensor", "offset", _num(p.off_s), fitted)
-    put("sensor", "tau_leak", _num(p.tau_leak) if math.isfinite(p.tau_leak) else math.inf,
-        fitted if math.isfinite(p.tau_leak) else "diagnose: no charge leakage found")
-    return m

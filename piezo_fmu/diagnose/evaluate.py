@@ -1,8 +1,20 @@
-"""Recognition study: run diagnose blind on synthetic recordings and count what it names.
+"""Recognition studies: run diagnose blind on concealed recordings and count what it names.
 
-``python -m piezo_fmu.diagnose.evaluate [--jobs 2] [--out eval.json] [--markdown table.md]``
+``python -m piezo_fmu.diagnose.evaluate [--generator synth|rig|both] [--quick] [--jobs 2]
+[--scheduler tcp://HOST:PORT] [--out eval.json] [--markdown table.md]``
 
-The cases (deterministic, seeded) cover every catalogue mechanism alone at three noise levels and
+Two generators:
+
+* ``rig`` - :mod:`piezo_fmu.rig`, written independently of diagnose: its own plant (other
+  hysteresis families, its own mechanics, pick-offs, amplifier, noise), excitation programmes and
+  case set with ground truth (which mechanisms are visible, which hidden). Used as a black box
+  through ``cases``, ``generate`` and the truth it returns.
+* ``synth`` - :mod:`.synth`, the project's own generator (the core's model plus mechanisms).
+
+The cases run on :mod:`piezo_fmu.parallel` (dask.distributed: a local cluster, or the cluster at
+``--scheduler``). Scoring: :mod:`.scoring`.
+
+The synth cases (deterministic, seeded) cover every catalogue mechanism alone at three noise levels and
 two parameter draws, every pair of mechanisms, clean recordings (nothing to find), and negative
 controls (mechanisms the catalogue does not have: mains hum on the displacement, a drifting sensor
 offset). Each case draws its own excitation programme: 2-4 of sine sets (0.5-50 Hz), steps and
@@ -22,16 +34,16 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .synth import EFFECTS, NOISE, PROGRAMMES
+from .scoring import markdown, summarise
+from .synth import EFFECTS, PROGRAMMES
 
-__all__ = ["cases", "markdown", "run_case", "summarise"]
+__all__ = ["cases", "main", "rig_cases", "run_case", "run_rig_case"]
 
 
 def cases(quick=False):
@@ -114,159 +126,139 @@ def _visibility(spec, case):
     return vis
 
 
-def run_case(spec):
+def _outcome(res):
+    named = list(res["final"]["effects"])
+    return {"named": named,
+            "confidence": {f["effect"]: f["confidence"] for f in res["findings"]},
+            "candidates": {c["effect"]: c["confidence"] for c in res.get("candidates", [])},
+            "nothing_missing": bool(res["final"]["nothing_missing"]), "verdict": res["final"]["verdict"],
+            "rmse_before": res["baseline"]["rmse"], "rmse_after": res["final"]["rmse"],
+            "noise_est": res["baseline"]["noise"],
+            "recalibrated": res["baseline"]["recalibrated"],
+            "parameters": {f["effect"]: f["parameters"] for f in res["findings"]},
+            "timing": res.get("timing_s"), "error": None}
+
+
+def _diagnose(raw):
     import warnings
 
     from .run import analyse
-    from .synth import make_case
 
     warnings.simplefilter("ignore")
     t0 = time.perf_counter()
+    try:
+        out = _outcome(analyse(raw).result)
+    except Exception as exc:  # noqa: BLE001 - a crash is a result too, counted and reported
+        out = {"named": [], "confidence": {}, "candidates": {}, "nothing_missing": False, "verdict": "",
+               "error": repr(exc)}
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def run_case(spec):
+    """One synth case: generate, diagnose blind, score against the truth."""
+    from .synth import make_case
+
     case = make_case(spec["seed"], spec["effects"], spec["noise"], spec["kinds"],
                      channels=tuple(spec.get("channels", ("x", "us"))))
     raw = [{"name": f"case{spec['seed']}", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
-    try:
-        diag = analyse(raw)
-        res = diag.result
-        named = [f["effect"] for f in res["findings"]]
-        out = {"named": named, "confidence": {f["effect"]: f["confidence"] for f in res["findings"]},
-               "unexplained": len(res["unexplained"]), "verdict": res["final"]["verdict"],
-               "rmse_before": res["baseline"]["rmse"], "rmse_after": res["final"]["rmse"],
-               "noise_est": res["baseline"]["noise"], "error": None}
-    except Exception as exc:  # noqa: BLE001 - a crash is a result too, counted and reported
-        out = {"named": [], "confidence": {}, "unexplained": 0, "verdict": "", "error": repr(exc)}
-    out["seconds"] = time.perf_counter() - t0
+    out = _diagnose(raw)
     out["visibility"] = _visibility(spec, case)
+    out["truth"] = [e for e in spec["effects"] if e in EFFECTS]
+    out["hidden"] = []
+    out["control"] = next((e for e in spec["effects"] if e not in EFFECTS), None)
+    out["case"] = f"synth-{spec['seed']}"
+    out["n_samples"] = int(case.t.size)
     out["truth_params"] = case.truth["parameters"]
     out["programme"] = case.truth["programme"]
     return {**spec, **out}
 
 
-def summarise(results):
-    catalogue = list(EFFECTS)
-    s = {"cases": len(results), "by_effect": {}, "by_noise": {}, "by_group": {}}
-    tp = fn = tp_vis = n_vis = 0
-    fp_cases = 0
-    fp_names = 0
-    opportunities = 0
-    for r in results:
-        truth = [e for e in r["effects"] if e in EFFECTS]
-        wrong = [n for n in r["named"] if n not in truth]
-        fp_cases += bool(wrong)
-        fp_names += len(set(wrong))
-        opportunities += len([c for c in catalogue if c not in truth])
-        g = s["by_group"].setdefault(r["group"], {"cases": 0, "all_right": 0, "false_positive_cases": 0,
-                                                  "true": 0, "recognised": 0, "described_unexplained": 0})
-        g["cases"] += 1
-        g["false_positive_cases"] += bool(wrong)
-        g["all_right"] += (sorted(set(r["named"])) == sorted(truth))
-        g["described_unexplained"] += bool(r.get("unexplained"))
-        nz = s["by_noise"].setdefault(r["noise"], {"true": 0, "recognised": 0, "cases": 0, "fp_cases": 0})
-        nz["cases"] += 1
-        nz["fp_cases"] += bool(wrong)
-        for e in truth:
-            hit = e in r["named"]
-            vis = r["visibility"].get(e, 0.0) >= 2.0
-            tp += hit
-            fn += not hit
-            n_vis += vis
-            tp_vis += hit and vis
-            g["true"] += 1
-            g["recognised"] += hit
-            nz["true"] += 1
-            nz["recognised"] += hit
-            be = s["by_effect"].setdefault(e, {"true": 0, "recognised": 0, "visible": 0, "visible_recognised": 0,
-                                               "named_wrongly": 0})
-            be["true"] += 1
-            be["recognised"] += hit
-            be["visible"] += vis
-            be["visible_recognised"] += hit and vis
-        for n in set(wrong):
-            be = s["by_effect"].setdefault(n, {"true": 0, "recognised": 0, "visible": 0, "visible_recognised": 0,
-                                               "named_wrongly": 0})
-            be["named_wrongly"] += 1
-    conf_true = [r["confidence"][n] for r in results for n in set(r["named"]) if n in r["effects"]]
-    conf_false = [r["confidence"][n] for r in results for n in set(r["named"]) if n not in r["effects"]]
-    s["confidence_true_names"] = float(np.mean(conf_true)) if conf_true else None
-    s["confidence_false_names"] = float(np.mean(conf_false)) if conf_false else None
-    s["recognition_rate"] = tp / max(tp + fn, 1)
-    s["recognition_rate_visible"] = tp_vis / max(n_vis, 1)
-    s["false_positive_case_rate"] = fp_cases / max(len(results), 1)
-    s["false_names_per_opportunity"] = fp_names / max(opportunities, 1)
-    s["errors"] = sum(1 for r in results if r.get("error"))
-    s["median_seconds"] = float(np.median([r["seconds"] for r in results])) if results else 0.0
-    return s
+def rig_cases(quick=False):
+    """The rig's concealed cases (its own specs)."""
+    from .. import rig
+
+    return list(rig.cases(quick=quick))
 
 
-def _pct(a, b):
-    return f"{100 * a / b:.0f} % ({a}/{b})" if b else "-"
+def run_rig_case(spec):
+    """One rig case: the rig generates it (its truth stays here), diagnose sees the recording only."""
+    from .. import rig
+
+    rec = rig.generate(spec)
+    raw = [{"name": str(rec.truth.get("case_id", "case")), "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
+    out = _diagnose(raw)
+    t = rec.truth
+    group = str(t.get("group", "")).replace("_", " ")
+    out.update({"case": t.get("case_id"), "group": group, "truth": list(t.get("mechanisms", [])),
+                "hidden": list(t.get("hidden", [])), "control": t.get("control"),
+                "n_samples": int(np.size(rec.time)), "fs": t.get("fs"),
+                "visibility": t.get("visibility"), "channels": t.get("channels")})
+    return out
 
 
-def markdown(s, results):
-    lines = ["| mechanism | recognised | recognised when visible (effect > 2 x noise over 50 ms somewhere) | named where absent (cases) |",
-             "|---|---|---|---|"]
-    for e in EFFECTS:
-        b = s["by_effect"].get(e)
-        if not b:
-            continue
-        lines.append(f"| {e} | {_pct(b['recognised'], b['true'])} | {_pct(b['visible_recognised'], b['visible'])} | "
-                     f"{b['named_wrongly']} |")
-    lines += ["", "| case group | cases | exactly right | recognised (true mechanisms) | cases with a false name |",
-              "|---|---|---|---|---|"]
-    for g, b in s["by_group"].items():
-        lines.append(f"| {g} | {b['cases']} | {_pct(b['all_right'], b['cases'])} | {_pct(b['recognised'], b['true'])} | "
-                     f"{_pct(b['false_positive_cases'], b['cases'])} |")
-    lines += ["", "| noise (x [um], us [V]) | recognised | cases with a false name |", "|---|---|---|"]
-    for nz, b in s["by_noise"].items():
-        sx, su = NOISE[nz]
-        lines.append(f"| {nz} ({sx:g}, {su:g}) | {_pct(b['recognised'], b['true'])} | {_pct(b['fp_cases'], b['cases'])} |")
-    lines += ["", (f"Overall: recognition rate {100 * s['recognition_rate']:.0f} % "
-                   f"({100 * s['recognition_rate_visible']:.0f} % of the visible mechanisms); "
-                   f"false-positive rate {100 * s['false_positive_case_rate']:.0f} % of cases "
-                   f"({100 * s['false_names_per_opportunity']:.1f} % of the chances to name a wrong mechanism); "
-                   f"{s['cases']} cases, median {s['median_seconds']:.1f} s per case, {s['errors']} errors. "
-                   + (f"Mean confidence of the right names {s['confidence_true_names']:.2f}"
-                      if s["confidence_true_names"] is not None else "")
-                   + (f", of the wrong ones {s['confidence_false_names']:.2f}."
-                      if s["confidence_false_names"] is not None else "."))]
-    return "\n".join(lines)
+GENERATORS = {"synth": (cases, run_case), "rig": (rig_cases, run_rig_case)}
+
+
+def _case_line(r, done, n, t0):
+    truth = "+".join(r["truth"]) or ("clean" if not r.get("control") else f"control {r['control']}")
+    named = "+".join(r["named"]) or "-"
+    ok = set(r["named"]) - set(r.get("hidden", [])) == set(r["truth"])
+    cand = ",".join(f"{k}:{v:.2f}" for k, v in r.get("candidates", {}).items())
+    return (f"[{done}/{n} {time.perf_counter() - t0:6.0f} s] {'ok' if ok else 'XX'} {r['case']:<12} {r['group']:<11} "
+            f"truth {truth:<40} named {named:<36} {('cand ' + cand) if cand else ''} "
+            f"({r['seconds']:.0f} s, {r.get('n_samples', 0)} samples)"
+            + (f" ERROR {r['error']}" if r.get("error") else ""))
+
+
+def study(generator, quick=False, jobs=None, scheduler=None, only=None, log=None):
+    """Run one generator's cases; returns ``(summary, results)``."""
+    from ..parallel import map_as_completed
+
+    make, run = GENERATORS[generator]
+    specs = make(quick)
+    if only:
+        keep = set(only)
+        specs = [c for c in specs if (c["group"] if isinstance(c, dict) else c.group) in keep]
+    t0 = time.perf_counter()
+    results = []
+    for i, (_, r) in enumerate(map_as_completed(run, specs, scheduler=scheduler, workers=jobs,
+                                                 errors="raise", target_task_s=60.0, max_batch=1)):
+        results.append(r)
+        if log:
+            log(_case_line(r, i + 1, len(specs), t0))
+    results.sort(key=lambda r: str(r["case"]))
+    catalogue = EFFECTS
+    return summarise(results, catalogue), results
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="python -m piezo_fmu.diagnose.evaluate", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
-    ap.add_argument("--quick", action="store_true", help="a third of the cases")
+    ap.add_argument("--generator", choices=("synth", "rig", "both"), default="both")
+    ap.add_argument("--jobs", type=int, default=None, help="local worker processes (default: one per core; "
+                                                           "0 runs in this process)")
+    ap.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                    help="run on an existing dask.distributed cluster (tcp://HOST:PORT)")
+    ap.add_argument("--quick", action="store_true", help="the generators' smaller case sets")
     ap.add_argument("--only", default="", help="comma-separated case groups to run")
     ap.add_argument("--out", help="write all results as JSON")
     ap.add_argument("--markdown", help="write the tables as markdown")
     a = ap.parse_args(argv)
-    specs = cases(a.quick)
-    if a.only:
-        keep = set(a.only.split(","))
-        specs = [c for c in specs if c["group"] in keep]
-    t0 = time.perf_counter()
-    results = []
-    if a.jobs > 1:
-        import multiprocessing as mp
-
-        with mp.get_context("spawn").Pool(a.jobs) as pool:
-            for i, r in enumerate(pool.imap_unordered(run_case, specs)):
-                results.append(r)
-                _progress(i, len(specs), r, t0)
-    else:
-        for i, spec in enumerate(specs):
-            r = run_case(spec)
-            results.append(r)
-            _progress(i, len(specs), r, t0)
-    results.sort(key=lambda r: r["seed"])
-    s = summarise(results)
-    table = markdown(s, results)
-    print(table)
+    gens = ("rig", "synth") if a.generator == "both" else (a.generator,)
+    only = [g for g in a.only.split(",") if g] or None
+    report, tables = {}, []
+    for gen in gens:
+        s, results = study(gen, a.quick, a.jobs, a.scheduler, only,
+                           log=lambda line: print(line, file=sys.stderr, flush=True))
+        report[gen] = {"summary": s, "results": results}
+        tables.append(markdown(s, f"{gen}: {s['cases']} cases"))
+    text = "\n\n".join(tables)
+    print(text)
     if a.out:
-        Path(a.out).write_text(json.dumps({"summary": s, "results": results}, indent=1, default=_default))
+        Path(a.out).write_text(json.dumps(report, indent=1, default=_default))
     if a.markdown:
-        Path(a.markdown).write_text(table + "\n")
+        Path(a.markdown).write_text(text + "\n")
     return 0
 
 
@@ -276,16 +268,6 @@ def _default(o):
     if isinstance(o, np.ndarray):
         return o.tolist()
     return str(o)
-
-
-def _progress(i, n, r, t0):
-    truth = "+".join(r["effects"]) or "clean"
-    named = "+".join(r["named"]) or "-"
-    mark = "ok" if sorted(set(r["named"])) == sorted(e for e in r["effects"] if e in EFFECTS) else "XX"
-    vis = ",".join(f"{k}:{v:.1f}" for k, v in r["visibility"].items())
-    print(f"[{i + 1}/{n} {time.perf_counter() - t0:6.0f} s] {mark} {r['group']:<11} {r['noise']:<4} truth {truth:<45} "
-          f"named {named:<40} vis {vis} ({r['seconds']:.0f} s){' ERROR ' + r['error'] if r.get('error') else ''}",
-          file=sys.stderr, flush=True)
 
 
 if __name__ == "__main__":

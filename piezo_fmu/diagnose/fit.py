@@ -17,7 +17,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
-from .engine import Params, predict, replay, residuals, solve_linear
+from .engine import Params, predict, replay
+from .varpro import residuals, solve_linear
 
 __all__ = ["FitResult", "Fitter", "Structure"]
 
@@ -29,12 +30,17 @@ class Structure:
     effects: tuple = ()
     creep_order: int = 0
     saturation: bool = False     # the nominal model's strain saturation (re-fitted, not a finding)
-    shape_extra: int = 0         # operators added by hysteresis_shape
+    shape_extra: int = 0         # operators added by hysteresis_shape (or by the refined ordinary loop)
+    refined: bool = False        # the finer loop as ordinary recalibration (a small loop-shape misfit)
 
-    def with_effect(self, name, shape_extra=0):
+    def refine(self, shape_extra):
+        """The finer operator grid as ordinary recalibration (no finding)."""
+        return replace(self, shape_extra=shape_extra, refined=True)
+
+    def with_effect(self, name, shape_extra=0, creep_order=None):
         eff = tuple(sorted(set(self.effects) | {name}))
         if name == "creep":
-            return replace(self, effects=eff, creep_order=self.creep_order + 1)
+            return replace(self, effects=eff, creep_order=creep_order or self.creep_order + 1)
         if name == "hysteresis_shape":
             return replace(self, effects=eff, shape_extra=shape_extra)
         return replace(self, effects=eff)
@@ -53,7 +59,7 @@ class Structure:
 
     def n_params(self):
         """Parameters beyond the nominal structure (for information criteria)."""
-        n = 0
+        n = self.shape_extra if self.refined else 0
         for e in self.effects:
             n += {"creep": 2 * self.creep_order, "sensor_leakage": 1, "amplifier_current_limit": 1,
                   "time_delay": 1, "extra_resonance": 2, "thermal_drift": 2,
@@ -64,7 +70,7 @@ class Structure:
 def strip(p: Params, struct: Structure, nominal_thresholds=None) -> Params:
     """``p`` with every mechanism not in ``struct`` switched off."""
     q = p.copy()
-    if "hysteresis_shape" not in struct.effects and nominal_thresholds is not None \
+    if "hysteresis_shape" not in struct.effects and not struct.refined and nominal_thresholds is not None \
             and len(q.thresholds) != len(nominal_thresholds):
         q.thresholds = np.asarray(nominal_thresholds, float)
         q.weights = np.zeros(len(q.thresholds))
@@ -86,8 +92,10 @@ def strip(p: Params, struct: Structure, nominal_thresholds=None) -> Params:
 
 
 # names of the nonlinear parameters of each mechanism (all positive, fitted in log coordinates)
-def free_names(struct: Structure):
-    names = ["tau"] + (["y_sat"] if struct.saturation else [])
+def free_names(struct: Structure, ordinary=("tau",)):
+    """Nonlinear parameters of ``struct``: the ordinary ones named in ``ordinary`` (the amplifier's
+    lags ``tau``/``tau2``, the first mode ``mech_f``/``mech_zeta``) and the mechanisms' own."""
+    names = list(ordinary) + (["y_sat"] if struct.saturation else [])
     for j in range(struct.creep_order):
         names += [f"creep_g{j}", f"creep_tau{j}"]
     if "sensor_leakage" in struct.effects:
@@ -99,7 +107,11 @@ def free_names(struct: Structure):
     return names
 
 
-def get_value(p: Params, name):
+def get_value(p: Params, name, dev=None):
+    if name == "mech_f":
+        return p.mode(dev)[0]
+    if name == "mech_zeta":
+        return p.mode(dev)[1]
     if name.startswith("creep_g"):
         return p.creep[int(name[7:])][0]
     if name.startswith("creep_tau"):
@@ -111,9 +123,13 @@ def get_value(p: Params, name):
     return getattr(p, name)
 
 
-def set_value(p: Params, name, v):
+def set_value(p: Params, name, v, dev=None):
     v = float(v)
-    if name.startswith("creep_g"):
+    if name == "mech_f":
+        p.set_mode(dev, f=v)
+    elif name == "mech_zeta":
+        p.set_mode(dev, zeta=v)
+    elif name.startswith("creep_g"):
         j = int(name[7:])
         p.creep[j] = (v, p.creep[j][1])
     elif name.startswith("creep_tau"):
@@ -166,8 +182,11 @@ class Fitter:
         self._cache = {}
         self.limits = {}         # name -> (lo, hi) overriding the defaults below
         self.restart = {}        # name -> value a fit restarts from when it starts at a limit
-        self.noise = {}          # channel -> white-noise floor (set once the baseline is known)
+        self.noise = {}          # channel -> noise level (set once the baseline is known)
+        self.ordinary = ["tau"]  # ordinary nonlinear parameters fitted with every structure
+        self.deadline = math.inf  # perf_counter() time after which no new search is started
         self.n_eval = 0
+        self.n_eff = 1000.0      # effective sample size of the current residual (set by the recalibration)
 
     # -- bounds --------------------------------------------------------------------------------
     def bounds(self, name, p=None):
@@ -176,10 +195,16 @@ class Fitter:
         dt, T = self.dt, self.duration
         if name == "tau":
             return 1e-7, max(0.05, min(1.0, T / 20))
+        if name == "tau2":
+            return 1e-6, max(0.02, min(0.2, T / 50))
+        if name == "mech_f":
+            return 100.0, max(120.0, min(25000.0, 0.85 * self.fs))
+        if name == "mech_zeta":
+            return 0.003, 0.35           # a mode, not a lag: more damping is the amplifier's order
         if name.startswith("creep_g"):
             return 1e-4, 3.0
         if name.startswith("creep_tau"):
-            return max(5 * dt, 0.01), 5 * T
+            return max(3 * dt, 0.002), 5 * T
         if name == "tau_leak":
             return max(5 * dt, 0.01), 200 * T
         if name == "slew":
@@ -200,7 +225,7 @@ class Fitter:
 
     # -- evaluation ------------------------------------------------------------------------------
     def replays(self, p: Params):
-        key = (p.tau, p.slew, p.delay, p.u_norm, tuple(np.asarray(p.thresholds).tolist()))
+        key = (p.tau, p.tau2, p.slew, p.delay, p.u_norm, tuple(np.asarray(p.thresholds).tolist()))
         rp = self._replays.get(key)
         if rp is None:
             rp = [replay(r, self.dev, p) for r in self.recs]
@@ -273,15 +298,78 @@ class Fitter:
         return sse
 
     # -- fitting ---------------------------------------------------------------------------------
-    def fit(self, p0: Params, struct: Structure, free=None, max_nfev=12, ftol=1e-5):
-        """Fit the nonlinear parameters ``free`` (default: all of ``struct``) with variable projection."""
+    def held(self, p: Params, struct: Structure):
+        """Weighted training residual with the PI weights held and each channel's gain and offset
+        (and the displacement's drift polynomial when ``struct`` has one) solved exactly: one
+        filtered column per channel instead of one per operator."""
+        self.n_eval += 1
+        preds = [predict(r, self.dev, p, direct=True) for r in self.recs]
+        out = []
+        for ch in ("x", "us"):
+            data = self._train_data(ch)
+            if data is None:
+                continue
+            y, basis, bb, by, _ = data
+            pr = np.concatenate([pd[ch][r.train] for r, pd in zip(self.recs, preds)
+                                 if getattr(r, ch) is not None])
+            k = 1 + (struct.drift_terms if ch == "x" else 0)
+            g = np.empty((k + 1, k + 1))
+            rhs = np.empty(k + 1)
+            g[0, 0] = pr @ pr
+            g[0, 1:] = g[1:, 0] = basis[:k] @ pr
+            g[1:, 1:] = bb[:k, :k]
+            rhs[0] = pr @ y
+            rhs[1:] = by[:k]
+            try:
+                c = np.linalg.solve(g, rhs)
+            except np.linalg.LinAlgError:
+                c = np.linalg.lstsq(g, rhs, rcond=None)[0]
+            e = y - c[0] * pr - c[1:] @ basis[:k]
+            out.append(math.sqrt(self.lam[ch]) * e)
+        return np.concatenate(out)
+
+    def fit(self, p0: Params, struct: Structure, free=None, max_nfev=12, ftol=1e-5, held=False):
+        """Fit the nonlinear parameters ``free`` (default: all of ``struct``).
+
+        ``held``: two rounds of a search with the PI weights held (:meth:`held`), the weights
+        re-solved exactly between them and at the end - a tenth of the cost of variable projection
+        (:meth:`varpro`, the default) per evaluation; near the same optimum for fast dynamics
+        (lags, delays, modes), but not where the static gain trades off against a parameter
+        (creep's gains), so the fast searches use it and everything else does not.
+        """
+        if held:
+            p = p0.copy()
+            nfev = 0
+            t0 = time.perf_counter()
+            for rnd in range(2):
+                fr = self._fit(p, struct, free, max_nfev if rnd == 0 else max(4, max_nfev // 2), ftol, True)
+                p = fr.params
+                nfev += fr.nfev
+            return self._guard(p0, p, struct, nfev, t0)
+        return self._fit(p0, struct, free, max_nfev, ftol, False)
+
+    def _guard(self, p0, p, struct, nfev, t0):
+        """``p`` settled (weights re-solved), or the start when that was better."""
+        self.varpro(p, struct, gn_iter=2)
+        c = self.cost(p)
+        start = p0.copy()
+        self.varpro(start, struct, gn_iter=2)
+        c0 = self.cost(start)
+        if c0 < c:
+            p, c = start, c0
+        return FitResult(p, struct, c, nfev, time.perf_counter() - t0)
+
+    def _fit(self, p0: Params, struct: Structure, free, max_nfev, ftol, held):
         t0 = time.perf_counter()
         n0 = self.n_eval
         p = p0.copy()
-        free = list(free if free is not None else free_names(struct))
+        if held:
+            self.varpro(p, struct)
+        evaluate = self.held if held else self.varpro
+        free = list(free if free is not None else free_names(struct, self.ordinary))
         lo = np.array([math.log(self.bounds(n)[0]) for n in free])
         hi = np.array([math.log(self.bounds(n)[1]) for n in free])
-        x0 = np.array([math.log(get_value(p, n)) for n in free])
+        x0 = np.array([math.log(get_value(p, n, self.dev)) for n in free])
         for i, n in enumerate(free):
             if n in self.restart and not (lo[i] + 0.01 < x0[i] < hi[i] - 0.01):
                 x0[i] = math.log(self.restart[n])
@@ -291,17 +379,17 @@ class Fitter:
 
         def fun(th):
             for n, v in zip(free, th):
-                set_value(p, n, math.exp(v))
-            r = self.varpro(p, struct)
+                set_value(p, n, math.exp(v), self.dev)
+            r = evaluate(p, struct)
             last.update(x=np.array(th), r=r, p=p.copy())
             return r
 
         def column(base, th, i, step):
             q = base.copy()
             for n, v in zip(free, th):
-                set_value(q, n, math.exp(v))
-            set_value(q, free[i], math.exp(th[i] + step))
-            return (self.varpro(q, struct) - last["r"]) / step
+                set_value(q, n, math.exp(v), self.dev)
+            set_value(q, free[i], math.exp(th[i] + step), self.dev)
+            return (evaluate(q, struct) - last["r"]) / step
 
         def jac(th):
             # forward differences, one parameter per worker (the heavy parts release the GIL)
@@ -317,10 +405,9 @@ class Fitter:
             sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), method="trf", x_scale=1.0,
                                 max_nfev=max_nfev, ftol=ftol, xtol=1e-4)
             for n, v in zip(free, sol.x):
-                set_value(p, n, math.exp(v))
-        self.varpro(p, struct, gn_iter=2)
-        c = self.cost(p)
-        return FitResult(p, struct, c, self.n_eval - n0, time.perf_counter() - t0)
+                set_value(p, n, math.exp(v), self.dev)
+        # a fit never returns worse than where it started (restarts, saturation's Gauss-Newton steps)
+        return self._guard(p0, p, struct, self.n_eval - n0, t0)
 
     def fit_scalar(self, p0: Params, struct: Structure, name, quick=False, bounds=None, xatol=0.02):
         """Bounded 1-D search of one parameter (log coordinates); other parameters held."""
@@ -331,7 +418,7 @@ class Fitter:
         hi = max(hi, lo * 1.5)
 
         def f(v):
-            set_value(p, name, math.exp(v))
+            set_value(p, name, math.exp(v), self.dev)
             if quick:
                 return self.quick(p)
             r = self.varpro(p, struct)
@@ -353,7 +440,7 @@ class Fitter:
                 elif n == "res":
                     p.res = v
                 else:
-                    set_value(p, n, v)
+                    set_value(p, n, v, self.dev)
             c = self.quick(p)
             if c < best_c:
                 best, best_c = p, c

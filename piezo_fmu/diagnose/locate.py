@@ -99,18 +99,27 @@ def describe_window(ctx, k0, k1):
     t, u, dt = ctx["t"], ctx["u"], ctx["dt"]
     sl = slice(k0, k1 + 1)
     parts = []
-    steps_in = [(k, a) for k, a in ctx["steps"] if k0 - int(3.0 / dt) <= k <= k1]
+    # steps by where they lie: before the window (at most 3 s before it), inside it, after it
+    before = [(k, a) for k, a in ctx["steps"] if k0 - int(3.0 / dt) <= k <= k0]
+    inside = [(k, a) for k, a in ctx["steps"] if k0 < k <= k1]
+    after = [(k, a) for k, a in ctx["steps"] if k1 < k]
     hold_share = float(np.mean(ctx["hold"][sl]))
     if t[k0] < 0.3 and k0 == 0 or (t[k0] < 0.3 and np.any(u[: max(1, k0)] == 0)):
         parts.append("start of the recording (device leaving rest)")
-    if steps_in and hold_share > 0.5:
-        k, a = steps_in[-1] if steps_in[-1][0] <= k0 else steps_in[0]
-        parts.append(f"hold after the step of {a:+.3g} V at {t[k]:.3g} s")
-    elif steps_in:
-        k, a = steps_in[0]
-        parts.append(f"step of {a:+.3g} V at {t[k]:.3g} s")
+    if inside:
+        k, a = inside[0]
+        more = f" (and {len(inside) - 1} more step(s) to {t[k1]:.4g} s)" if len(inside) > 1 else ""
+        parts.append(f"step of {a:+.4g} V at {t[k]:.4g} s{more}")
+        if hold_share > 0.5 and k - k0 > 0.5 * (k1 - k0):
+            parts.append(f"hold at {np.mean(u[k0:k]):.4g} V before it")
+    elif before and hold_share > 0.5:
+        k, a = before[-1]
+        parts.append(f"hold after the step of {a:+.4g} V at {t[k]:.4g} s")
     elif hold_share > 0.5:
-        parts.append(f"hold at {np.mean(u[sl]):.3g} V")
+        parts.append(f"hold at {np.mean(u[sl]):.4g} V")
+    if not inside and after and hold_share > 0.5 and after[0][0] - k1 <= max(1, int(0.05 / dt)):
+        k, a = after[0]
+        parts.append(f"before the step of {a:+.4g} V at {t[k]:.4g} s")
     f = float(np.median(ctx["freq"][sl]))
     if hold_share <= 0.5:
         rate = float(np.max(ctx["rate"][sl]))

@@ -197,11 +197,11 @@ def _figures(diag, sim_nom, sim_fin, out, force):
         for f in res["findings"]:
             for w in f["where"]:
                 if w.get("channel", c) == c and w.get("recording", r0.name) == r0.name:
-                    ax.axvspan(w["t0"], max(w["t1"], w["t0"] + 2 * r0.dt), color=colours[f["effect"]], alpha=0.2, lw=0)
+                    ax.axvspan(w["t0_s"], max(w["t1_s"], w["t0_s"] + 2 * r0.dt), color=colours[f["effect"]], alpha=0.2, lw=0)
         for u in res["unexplained"]:
             if u["channel"] == c:
                 for w in u["where"]:
-                    ax.axvspan(w["t0"], w["t1"], color="k", alpha=0.08, hatch="//", lw=0)
+                    ax.axvspan(w["t0_s"], w["t1_s"], color="k", alpha=0.08, hatch="//", lw=0)
         handles, labels = ax.get_legend_handles_labels()
         from matplotlib.patches import Patch
 
@@ -255,22 +255,22 @@ def _figures(diag, sim_nom, sim_fin, out, force):
     for u in res["unexplained"][:1]:
         if u["where"]:
             zooms.append(("unexplained", u["where"][0]))
-    zooms = zooms[:3] or [("whole recording", {"t0": float(t[0]), "t1": float(t[-1])})]
+    zooms = zooms[:3] or [("whole recording", {"t0_s": float(t[0]), "t1_s": float(t[-1])})]
     ncol = len(zooms)
     fig, axes = plt.subplots(2 * len(chans), ncol, figsize=(4.6 * ncol + 1.5, 2.4 * 2 * len(chans)),
                              squeeze=False, gridspec_kw={"height_ratios": [1.4, 1] * len(chans)})
     for i, c in enumerate(chans):
         y = r0.sign.get(c, 1) * getattr(r0, c)
         for j, (name, w) in enumerate(zooms):
-            span = w["t1"] - w["t0"]
+            span = w["t1_s"] - w["t0_s"]
             pad = max(0.25 * span, 30 * r0.dt)
-            sl = (t >= w["t0"] - pad) & (t <= w["t1"] + pad)
+            sl = (t >= w["t0_s"] - pad) & (t <= w["t1_s"] + pad)
             tt, yy, a, b = _decimate(t[sl], y[sl], nm0[c][sl], fi0[c][sl], n_max=6000)
             ax = axes[2 * i][j]
             ax.plot(tt, yy, color="k", lw=1.0, label="measured")
             ax.plot(tt, a, color="0.55", lw=0.9, ls="--", label="nominal (recalibrated)")
             ax.plot(tt, b, color="C0", lw=0.9, label="final")
-            ax.set_title(f"{name}: {w['t0']:.4g}-{w['t1']:.4g} s", fontsize=9)
+            ax.set_title(f"{name}: {w['t0_s']:.4g}-{w['t1_s']:.4g} s", fontsize=9)
             ax.grid(alpha=0.3)
             ax2 = axes[2 * i + 1][j]
             ax2.plot(tt, yy - a, color="0.55", lw=0.8, label="measured - nominal")
@@ -322,6 +322,48 @@ def _figures(diag, sim_nom, sim_fin, out, force):
 
 # -- html -------------------------------------------------------------------------------------------------
 
+# units of the parameter keys (suffix -> unit) for the findings table
+_SUFFIX = (("_Hz", "Hz"), ("_V_per_s", "V/s"), ("_per_s2", "x/s^2"), ("_per_s", "x/s"), ("_s", "s"),
+           ("_A", "A"), ("_um", "um"), ("_V", "V"))
+_PLAIN = {"zeta": "1", "gains": "1", "samples": "samples", "operators": "operators", "thresholds": "1 (of u_norm)"}
+
+
+def _num(v):
+    return f"{v:.4g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else str(v)
+
+
+def _param_text(params):
+    """``{"f_n_Hz": 65.4, "zeta": 0.005}`` -> ``f_n 65.4 Hz, zeta 0.005 (1)``: plain numbers, units."""
+    out = []
+    for k, v in params.items():
+        unit, name = None, k
+        for suf, u in _SUFFIX:
+            if k.endswith(suf):
+                name, unit = k[: -len(suf)], u
+                break
+        unit = unit or _PLAIN.get(k, "")
+        if isinstance(v, (list, tuple)):
+            val = "[" + ", ".join(_num(x) for x in v) + "]"
+        else:
+            val = _num(v)
+        out.append(f"{name} {val}" + (f" {unit}" if unit and unit != "1" else (" (1)" if unit == "1" else "")))
+    return ", ".join(out)
+
+
+def _band(b):
+    """``[lo, hi]`` [Hz] -> ``lo-hi Hz`` (plain numbers); ``-`` when there is none."""
+    if not b:
+        return "-"
+    return f"{float(b[0]):.4g}-{float(b[1]):.4g} Hz"
+
+
+def _where_text(w):
+    return f"{w['t0_s']:.4g}-{w['t1_s']:.4g} s: {w['why']}"
+
+
+UNIT = {"x": "um", "us": "V"}
+
+
 def _table(rows, head):
     h = "".join(f"<th>{html.escape(str(x))}</th>" for x in head)
     b = "".join("<tr>" + "".join(f"<td>{x}</td>" for x in r) + "</tr>" for r in rows)
@@ -345,29 +387,49 @@ code{{background:#f6f6f6}}</style></head><body>
         rows.append([f"+ {e(f['effect'])}"] + [_fmt(f["rmse_after"].get(c, float("nan"))) for c in chans] + [""])
     rows.append(["<b>final</b>"] + [f"<b>{_fmt(res['final']['rmse'][c])}</b>" for c in chans]
                 + [f"<b>{_fmt(res['final']['nrmse'])}</b>"])
-    rows.append(["noise floor"] + [_fmt(res["baseline"]["noise"][c]) for c in chans] + [""])
-    parts.append("<h2>Held-out RMSE</h2>" + _table(rows, ["model"] + [f"rmse {c}" for c in chans] + ["nrmse"]))
+    rows.append(["noise level"] + [_fmt(res["baseline"]["noise"][c]) for c in chans] + [""])
+    parts.append("<h2>Held-out RMSE</h2>" + _table(rows, ["model"] + [f"rmse {c} [{UNIT[c]}]" for c in chans]
+                                                       + ["nrmse [1]"]))
     parts.append("<p>Nominal model as given (before recalibration): "
-                 + ", ".join(f"{c} {_fmt(v)}" for c, v in res["baseline"]["nominal_as_given_rmse"].items())
+                 + ", ".join(f"{c} {_fmt(v)} {UNIT[c]}" for c, v in res["baseline"]["nominal_as_given_rmse"].items())
                  + ". " + e(res["validation"]["method"]) + f" ({100 * res['validation']['heldout_fraction']:.0f} % held out).</p>")
     if res["findings"]:
         rows = []
         for f in res["findings"]:
             ev = f["evidence"]
-            where = "<br>".join(e(f"{w['t0']:.4g}-{w['t1']:.4g} s: {w['why']}") for w in f["where"][:3])
+            where = "<br>".join(e(_where_text(w)) for w in f["where"][:3])
             rows.append([f"<b>{e(f['effect'])}</b><br>{e(CATALOGUE[f['effect']].title)}", e(", ".join(f["channels"])),
-                         f"{f['confidence']:.2f}", e(json.dumps(f["parameters"])),
-                         e(str(f["band_hz"])), where,
+                         f"{f['confidence']:.2f}", e(_param_text(f["parameters"])),
+                         e(_band(f["band_hz"])), where,
                          e(f"explains {', '.join(f'{c} {100 * v:.0f} %' for c, v in ev['explained_share'].items())} "
                            f"of the structured held-out residual; LR {ev['likelihood_ratio']:.1f} (df {ev['df']}, "
                            f"p {ev['p_lr']:.2g}); dBIC {ev['delta_bic']:.1f}; held-out blocks better "
                            f"{ev['heldout_blocks_better']} (p {ev['p_heldout_blocks']:.2g})")])
-        parts.append("<h2>Findings</h2>" + _table(rows, ["mechanism", "channel", "confidence", "parameters",
-                                                          "band [Hz]", "where", "evidence"]))
+        parts.append("<h2>Findings</h2>" + _table(rows, ["mechanism", "channel", "confidence [0-1]", "parameters",
+                                                          "band", "where", "evidence"]))
+    if res.get("candidates"):
+        rows = [[f"<b>{e(c['effect'])}</b>", f"{c['confidence']:.2f}", e(_param_text(c["parameters"])),
+                 e(_band(c["band_hz"])), e(c["why_not_named"]),
+                 e((c["evidence"].get("strongest_alternative") or {}).get("effect", "-"))] for c in res["candidates"]]
+        parts.append("<h2>Candidates (supported, but below confidence 0.5: not in the model)</h2>"
+                     + _table(rows, ["mechanism", "confidence [0-1]", "parameters", "band", "why not named", "rival"]))
+    rc = res["baseline"].get("recalibrated", {})
+    if rc:
+        rows = []
+        for k, v in rc.items():
+            if isinstance(v, dict) and "value" in v:
+                unc = v.get("relative_uncertainty")
+                extra = " (not identified" + (f": {v['why']}" if v.get("why") else "") + ")" \
+                    if v.get("identified") is False else ""
+                rows.append([e(k), e(_param_text({k: v["value"]})) + e(extra),
+                             f"{100 * unc:.2g} %" if unc is not None else "-"])
+            else:
+                rows.append([e(k), e(_param_text({k: v})), "-"])
+        parts.append("<h2>Recalibrated ordinary physics</h2>" + _table(rows, ["quantity", "value", "relative uncertainty"]))
     rows = []
     for c, t in res["final"]["tests"].items():
         xc = t["input_xcorr"]
-        rows.append([e(c), _fmt(t["noise"]), _fmt(t["structured_rms"]),
+        rows.append([e(c), f"{_fmt(t['noise'])} {UNIT[c]}", f"{_fmt(t['structured_rms'])} {UNIT[c]}",
                      f"{t['whiteness_decimated']['p']:.2g} (Q {t['whiteness_decimated']['Q']:.3g})",
                      f"{xc['max_abs']:.3g} (99 % bound {xc['bound']:.3g}, lag {xc['lag']})"])
     parts.append("<h2>Residual tests of the final model (held-out and training samples)</h2>"
@@ -375,10 +437,10 @@ code{{background:#f6f6f6}}</style></head><body>
                                  "Ljung-Box p (decimated by the correlation time)",
                                  "max |corr| with the command's increments"]))
     if res["unexplained"]:
-        rows = [[e(u["channel"]), e(str(u["band_hz"])), e(u["description"]),
-                 "<br>".join(e(f"{w['t0']:.4g}-{w['t1']:.4g} s: {w['why']}") for w in u["where"])]
+        rows = [[e(u["channel"]), e(_band(u["band_hz"])), e(u["description"]),
+                 "<br>".join(e(_where_text(w)) for w in u["where"])]
                 for u in res["unexplained"]]
-        parts.append("<h2>Structured residual no mechanism explains</h2>" + _table(rows, ["channel", "band [Hz]", "what", "where"]))
+        parts.append("<h2>Structured residual no mechanism explains</h2>" + _table(rows, ["channel", "band", "what", "where"]))
     for name, title in (("residual_time.png", "Residual over time (located windows shaded)"),
                         ("residual_spectrum.png", "Residual spectrum before / after"),
                         ("fit_before_after.png", "Measured vs simulated before / after"),
@@ -388,14 +450,15 @@ code{{background:#f6f6f6}}</style></head><body>
             parts.append(f"<h2>{e(title)}</h2><img alt='{e(name)}' src='data:image/png;base64,{b64}'>")
     loc = res["localisation"]
     for c, L in loc.items():
-        rows = [[e(k), _fmt(v["rms"]), f"{100 * v['share_of_samples']:.0f} %"] for k, v in L["segments"].items()]
+        rows = [[e(k), f"{_fmt(v['rms'])} {UNIT[c]}", f"{100 * v['share_of_samples']:.0f} %"] for k, v in L["segments"].items()]
         parts.append(f"<h2>Where the recalibrated nominal model misses ({e(c)})</h2>"
                      f"<p>rms over all samples (for locating; the RMSEs above are held-out) "
-                     f"{_fmt(L['rms_all_samples'])}, noise {_fmt(L['noise'])}, "
-                     f"structured {_fmt(L['structured_rms'])}</p>"
+                     f"{_fmt(L['rms_all_samples'])} {UNIT[c]}, noise {_fmt(L['noise'])} {UNIT[c]}, "
+                     f"structured {_fmt(L['structured_rms'])} {UNIT[c]}</p>"
                      + _table(rows, ["input segment", "rms residual", "share of samples"])
-                     + _table([[e(str(b["band_hz"])), _fmt(b["rms"]), f"{100 * b['share']:.0f} %", f"{b['coherence']:.2f}"]
-                               for b in L["bands"]], ["band above noise [Hz]", "rms", "share", "coherence with u"]))
+                     + _table([[e(_band(b["band_hz"])), f"{_fmt(b['rms'])} {UNIT[c]}", f"{100 * b['share']:.0f} %",
+                                f"{b['coherence']:.2f}"]
+                               for b in L["bands"]], ["band above noise", "rms", "share", "coherence with u [0-1]"]))
     if res["rejected"]:
         parts.append("<h2>Candidates tested and not accepted</h2>"
                      + _table([[e(r["effect"]), e(r["why"])] for r in res["rejected"]], ["mechanism", "why not"]))

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 from scipy import stats as sst
+from scipy.ndimage import median_filter
 from scipy.signal import welch
 
 __all__ = ["compare", "improvement_band", "input_xcorr", "noise_std", "psd", "tau_int", "whiteness"]
@@ -30,17 +31,58 @@ def psd(e, fs, nperseg=None):
 
 
 def noise_std(e, fs):
-    """Standard deviation of the white part of ``e``: the median PSD level of the top 40 % of the
-    band (corrected for the median of a chi-square), times the bandwidth."""
-    f, p = psd(e, fs)
-    top = p[f >= 0.6 * f[-1]]
-    if top.size < 3:
-        return float(np.std(np.diff(e)) / math.sqrt(2))
+    """Standard deviation of the noise in ``e`` (see :func:`noise_level`)."""
+    return noise_level(e, fs)[0]
+
+
+_AR_GRID = np.round(np.arange(-0.6, 0.6001, 0.05), 2)
+
+
+def noise_level(e, fs):
+    """``(sigma, a)``: the noise of a residual as first-order autoregressive (white when ``a`` = 0).
+
+    Acquisition noise is often a little coloured (anti-alias filters, a probe's own bandwidth).
+    The shape ``1 / (1 - 2 a cos(w) + a^2)`` is fitted to the upper half of the residual spectrum,
+    where a model's misfit is weakest (the median of the log-ratio, so lines from a misfit do not
+    count); ``a`` is kept at 0 unless the colour is clear (the log-spectrum's misfit falls by more
+    than its sampling scatter allows). ``sigma`` is then the standard deviation of the AR(1)
+    process, its spectrum extrapolated to every frequency but never above the residual's own
+    (smoothed) spectrum there."""
+    # short segments: many averages make a smooth floor (its resolution does not matter here)
+    f, p = psd(e, fs, int(min(512, max(64, 2 ** int(math.log2(max(e.size // 16, 64)))))))
+    sel = (f >= 0.5 * f[-1]) & (f > 0)
+    if np.count_nonzero(sel) < 6:
+        return float(np.std(np.diff(e)) / math.sqrt(2)), 0.0
     nseg = max(1, 2 * e.size // max(1, 2 * (f.size - 1)) - 1)
     dof = 2 * nseg
     corr = dof / sst.chi2.ppf(0.5, dof)            # mean / median of chi2(dof)/dof
-    level = float(np.median(top)) * corr
-    return math.sqrt(max(level * fs / 2.0, 0.0))
+    w = 2 * np.pi * f[sel] / fs
+    lp = np.log(np.maximum(p[sel], 1e-300))
+    k = lp.size
+    keep = max(4, int(0.85 * k))                  # the largest 15 % (lines of a misfit) do not count
+
+    def misfit(a):
+        r = lp + np.log(1 - 2 * a * np.cos(w) + a * a)
+        c = float(np.median(r))
+        d = np.sort((r - c) ** 2)[:keep]
+        return float(np.mean(d)), c
+
+    fits = {a: misfit(a) for a in _AR_GRID}
+    a_best = min(fits, key=lambda a: fits[a][0])
+    # colour only when it beats white clearly: by more than the scatter of the mean square
+    m0 = fits[0.0][0]
+    a = a_best if fits[a_best][0] < m0 * (1.0 - 5.0 / keep) else 0.0
+    c = fits[a][1]
+    level = math.exp(c) * corr                      # one-sided PSD level of the shape
+    if a == 0.0:
+        return math.sqrt(max(level * fs / 2.0, 0.0)), 0.0
+    # the extrapolated colour may never put more noise at a frequency than the residual has there
+    # (a misfit near the top of the band must not pass for noise everywhere below it)
+    model = level / (1 - 2 * a * np.cos(2 * np.pi * f / fs) + a * a)
+    smooth = median_filter(p, size=7, mode="nearest") * corr
+    df = float(f[1] - f[0])
+    var = float(np.sum(np.minimum(model, smooth)[1:]) * df)
+    return math.sqrt(max(var, 0.0)), float(a)
 
 
 def tau_int(e, max_lag=None):
@@ -201,4 +243,4 @@ def improvement_band(e0, e1, fs, share=0.8):
     c = np.cumsum(gain) / tot
     lo = float(f[int(np.searchsorted(c, (1 - share) / 2))]) - df / 2
     hi = float(f[min(int(np.searchsorted(c, 1 - (1 - share) / 2)), f.size - 1)]) + df / 2
-    return [round(max(lo, 0.0), 4), round(min(hi, fs / 2), 4)]
+    return [float(round(max(lo, 0.0), 4)), float(round(min(hi, fs / 2), 4))]

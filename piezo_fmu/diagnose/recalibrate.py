@@ -1,0 +1,381 @@
+"""Recalibration: the ordinary physics of this specimen, fitted before anything is named.
+
+Any real device differs from its data sheet, and an independently built rig differs from the
+paper's structure in ordinary ways. None of that is missing physics, so all of it is fitted first:
+
+1. the PI weights (bounded least squares, every partial sum positive), the displacement gain and
+   offset, the sensor gain and offset, the strain saturation, the amplifier's lag ``R C_a``;
+2. the mechanics' **first mode** (frequency 100 Hz - 20 kHz via the moving mass, damping via
+   ``c``) together with **what the sensor channel follows** (:data:`PICKOFFS`: the stack's blocked
+   force, the contact force between stack and push rod, or the load spring's force, i.e. the
+   push-rod displacement): a grid, then a joint fit of the best points. Kept only when the data
+   see it (the fit beats the nominal mode clearly); otherwise the nominal mode stays and the
+   report says it was not visible;
+3. the amplifier's **order**: a second lag stage ``tau_2`` kept when it beats a first-order
+   amplifier clearly;
+4. the channels' **sampling lags** (whole samples, 0-2; with both channels recorded only their
+   difference is ordinary: a lag common to both is the catalogue's ``time_delay``);
+5. a joint fit of everything kept, and the uncertainty of each value (from the Jacobian, with the
+   effective sample size of the residual).
+
+"Clearly" is the selection's own yardstick: a BIC gain of more than ``ACCEPT['dbic']`` with the
+effective sample size.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .catalogue import spectral_peaks
+from .engine import predict
+from .fit import Fitter, Structure, free_names, get_value
+from .select import ACCEPT, full_residuals, residual_sets
+from .stats import compare, noise_level, tau_int
+from .varpro import solve_linear
+
+__all__ = ["PICKOFFS", "Recalibration", "recalibrate"]
+
+PICKOFFS = ("stack", "contact", "load")
+MODE_RANGE = (100.0, 20000.0)        # [Hz] the first mode's search range
+MAX_LAG = 2                          # [samples]
+
+
+@dataclass
+class Recalibration:
+    params: object
+    report: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+    nominal_mode: tuple = (0.0, 0.0)          # the nominal (m, c)
+
+
+def _noise(fitter, p):
+    """Noise level per channel of the current residual (all samples)."""
+    out = {}
+    for r, pr in zip(fitter.recs, [predict(r, fitter.dev, p, rp) for r, rp in zip(fitter.recs, fitter.replays(p))]):
+        for c in r.channels():
+            out.setdefault(c, []).append(noise_level(getattr(r, c) - pr[c], 1 / r.dt)[0] ** 2)
+    return {c: math.sqrt(float(np.mean(v))) for c, v in out.items()}
+
+
+def _gain(fitter, p0, p1, k):
+    """BIC gain (effective sample size) of ``p1`` over ``p0`` with ``k`` more parameters."""
+    noise = _noise(fitter, p1)
+    cmp = compare(residual_sets(fitter, p0)[0], residual_sets(fitter, p1)[0], k, noise)
+    return cmp["dbic"], cmp
+
+
+def _fit(fitter, p, struct, ordinary, nfev=10, held=True):
+    """Fit the ordinary parameters ``ordinary`` with every parameter of ``struct``'s mechanisms."""
+    return fitter.fit(p, struct, free=free_names(struct, ordinary), max_nfev=nfev, held=held)
+
+
+def recalibrate(fitter: Fitter, p_start, struct: Structure, step) -> Recalibration:
+    """Fit the ordinary physics (see the module docstring); ``fitter.ordinary`` ends up naming the
+    nonlinear ordinary parameters every later fit frees."""
+    sat = ["y_sat"] if struct.saturation else []
+    rc = Recalibration(p_start, nominal_mode=(p_start.m, p_start.c))
+    p = p_start
+    # -- 1. the amplifier lag with the nominal mechanics -----------------------------------------------
+    p, _ = fitter.fit_scalar(p, struct, "tau")
+    rc.params = _fit(fitter, p, struct, ["tau"], 8).params
+    revisit(fitter, rc, struct, step)
+    rc.report["uncertainty"] = uncertainty(fitter, rc.params, struct, fitter.ordinary + sat)
+    return rc
+
+
+def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
+    """Try every ordinary item not identified yet (first mode and pick-off, amplifier order,
+    sampling lags) on ``rc.params`` with the mechanisms of ``struct`` in; update ``rc`` in place and
+    return whether anything changed. The selection calls it again after each finding: a mechanism
+    that dominated the residual may have hidden an ordinary item."""
+    sat = ["y_sat"] if struct.saturation else []
+    changed = False
+    # effective sample size of the current residual: how much a screening gain is worth
+    sets = residual_sets(fitter, rc.params)[0]
+    fitter.n_eff = sum(v["train"].size / tau_int(v["train"]) for v in sets.values())
+    step("recalibrating the amplifier's order")
+    changed |= _order(fitter, rc, struct, sat)
+    if not rc.report.get("first_mode", {}).get("identified") and (
+            time.perf_counter() < fitter.deadline or "first_mode" not in rc.report):
+        step("recalibrating the first mode of the mechanics and what the sensor channel follows")
+        changed |= _mode(fitter, rc, struct, sat)
+    if not rc.report.get("sampling_lags", {}).get("identified") and (
+            time.perf_counter() < fitter.deadline or "sampling_lags" not in rc.report):
+        step("recalibrating the channels' sampling lags")
+        changed |= _lags(fitter, rc, struct, sat)
+    if changed:
+        rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 20, held=False).params
+        f, z = rc.params.mode(fitter.dev)
+        if "mech_f" in fitter.ordinary and (_edge(fitter, "mech_f", f) or _edge(fitter, "mech_zeta", z)):
+            # settled at the end of its range: not a mode the data see (a lag or a delay passing for one)
+            drop(fitter, rc, "mode", why=f"settled at the end of its search range ({f:.4g} Hz, zeta {z:.3g})")
+            rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 12).params
+    return changed
+
+
+def drop(fitter: Fitter, rc: Recalibration, item, why=""):
+    """Take an ordinary item back out (``mode``, ``order`` or ``lags``): a candidate explains its
+    share better, or it settled where it is no longer what it stands for."""
+    p = rc.params
+    if item == "mode":
+        p.m, p.c = rc.nominal_mode
+        fitter.ordinary = [n for n in fitter.ordinary if n not in ("mech_f", "mech_zeta")]
+        rc.report["first_mode"] = {"identified": False, "why": why or "not needed"}
+        rc.report["pickoff"] = {"value": p.pick, "identified": False, "why": "without a visible mode every "
+                                                                           "pick-off gives the same signals"}
+    elif item == "order":
+        p.tau, p.tau2 = p.tau + p.tau2, 0.0
+        fitter.ordinary = [n for n in fitter.ordinary if n != "tau2"]
+        rc.report["amplifier_order"] = {"value": 1, "why_not_2": why or "not needed"}
+    elif item == "lags":
+        p.lag_x = p.lag_us = 0
+        rc.report["sampling_lags"] = {"identified": False, "x_samples": 0, "us_samples": 0}
+    return p
+
+
+ITEM_PARAMS = {"mode": ("mech_f", "mech_zeta"), "order": ("tau2",), "lags": ()}
+ITEM_K = {"mode": 3, "order": 1, "lags": 1}     # parameters each item adds (the mode: f, zeta, pick-off)
+
+
+def without(p, item, rc: Recalibration):
+    """A copy of ``p`` without the ordinary ``item`` (nothing else changed)."""
+    q = p.copy()
+    if item == "mode":
+        q.m, q.c = rc.nominal_mode
+    elif item == "order":
+        q.tau, q.tau2 = q.tau + q.tau2, 0.0
+    elif item == "lags":
+        q.lag_x = q.lag_us = 0
+    return q
+
+
+def present(fitter: Fitter, rc: Recalibration):
+    """The fast ordinary items currently in (what a fast candidate may replace)."""
+    p = rc.params
+    out = []
+    if "mech_f" in fitter.ordinary:
+        out.append("mode")
+    if p.tau2 > 0:
+        out.append("order")
+    if p.lag_x or p.lag_us:
+        out.append("lags")
+    return out
+
+
+SCREEN = 5.0     # a screening (weights held) must promise this BIC gain before a full fit is tried
+
+
+def _promise(fitter, q0, q1):
+    """BIC gain a screening cost ``q1`` promises over ``q0`` (effective sample size)."""
+    return fitter.n_eff * math.log(max(q0, 1e-300) / max(q1, 1e-300))
+
+
+def _edge(fitter, name, v):
+    lo, hi = fitter.bounds(name)
+    span = math.log(hi / lo)
+    return math.log(v / lo) < 0.01 * span or math.log(hi / v) < 0.01 * span
+
+
+def _mode(fitter, rc, struct, sat):
+    """The first mode (grid over frequency and damping for each pick-off, joint fit of the best
+    three) and what the sensor follows; kept when the data see them."""
+    p = rc.params
+    chans = sorted({c for r in fitter.recs for c in r.channels()})
+    # a stack's first mode moves the push rod against the sensor: a sensor in the load path (the
+    # contact force, or the load spring's) sees it. A mode in the displacement alone, with a sensor
+    # channel recorded, sits after the sensor: a further mode (extra_resonance), not this one
+    picks = ("contact", "load") if "us" in chans else ("stack",)
+    # a further mode found already may sit elsewhere once the first mode is in: both places
+    places = ("output", "drive") if (p.res is not None and "us" in chans) else (p.res_at,)
+    f_nom, z_nom = p.mode(fitter.dev)
+    free = [n for n in fitter.ordinary if n not in ("mech_f", "mech_zeta")]
+    # frequencies: a coarse grid and the peaks of the residual's spectrum (a lightly damped mode
+    # falls between grid points)
+    # up to 0.8 fs: a mode a little above the Nyquist frequency still shows (aliased); far above
+    # it, the samples cannot tell its frequency
+    hi = min(MODE_RANGE[1], 0.8 * fitter.fs)
+    if hi <= MODE_RANGE[0]:
+        rc.report["first_mode"] = {"identified": False, "why": "the sample rate cannot see the mode range"}
+        return False
+    freqs = list(np.exp(np.linspace(math.log(MODE_RANGE[0]), math.log(hi), 15)))
+    for r, e in zip(fitter.recs, full_residuals(fitter, p)):
+        for res in e.values():
+            freqs += [f for f in spectral_peaks(res, 1 / r.dt, 4) if MODE_RANGE[0] <= f <= hi]
+    # screened with the weights held (gains and offsets re-solved): cheap, and the mode's effect
+    # is far larger than the weights' re-adjustment
+    grid = []
+    for pick in picks:
+        for at in places:
+            for f in freqs:
+                for z in (0.03, 0.15):
+                    q = p.copy()
+                    q.pick, q.res_at = pick, at
+                    q.set_mode(fitter.dev, f=float(f), zeta=z)
+                    grid.append((fitter.quick(q), pick, at, float(f), z))
+            if (pick, at) != (p.pick, p.res_at):
+                q = p.copy()
+                q.pick, q.res_at = pick, at
+                grid.append((fitter.quick(q), pick, at, f_nom, z_nom))
+    grid.sort()
+    q_now = fitter.quick(p)
+    if _promise(fitter, q_now, grid[0][0]) < SCREEN:
+        why = "not visible in this recording (no mode frequency improves the fit)"
+        rc.report["first_mode"] = {"identified": False, "why": why}
+        rc.report["pickoff"] = {"value": p.pick, "identified": False,
+                                "why": "without a visible mode every pick-off gives the same signals"}
+        rc.notes = [n for n in rc.notes if "first mode" not in n]
+        rc.notes.append(f"the mechanics' first mode was {why}; the nominal {f_nom:.4g} Hz (zeta {z_nom:.3g}) is kept")
+        return False
+    tried, seen = [], set()
+    for _, pick, at, f, z in grid:
+        key = (pick, at, round(math.log(f), 1))
+        if key in seen:
+            continue
+        seen.add(key)
+        q = p.copy()
+        q.pick, q.res_at = pick, at
+        q.set_mode(fitter.dev, f=f, zeta=z)
+        # the mode's own parameters and the lags it trades off against (everything else follows in
+        # the settling fit once it is in)
+        tried.append(fitter.fit(q, struct, free=free + ["mech_f", "mech_zeta"], max_nfev=10, held=True))
+        if len(tried) >= 2:
+            break
+    best = min(tried, key=lambda fr: fr.cost)
+    gain, _ = _gain(fitter, p, best.params, 2 + (best.params.pick != p.pick))
+    f_fit, z_fit = best.params.mode(fitter.dev)
+    edge = _edge(fitter, "mech_f", f_fit) or _edge(fitter, "mech_zeta", z_fit)
+    if gain > ACCEPT["dbic"] and not edge:
+        q = best.params
+        fitter.ordinary = fitter.ordinary + ["mech_f", "mech_zeta"]
+        rc.report["first_mode"] = {"identified": True, "bic_gain": round(gain, 1)}
+        rc.params = q
+        rc.report["pickoff"] = {"value": q.pick, "identified": q.pick != "stack"}
+        rc.notes = [n for n in rc.notes if "first mode" not in n]
+        return True
+    why = ("at the end of its search range" if edge else f"not visible in this recording (BIC gain {gain:.1f})")
+    rc.report["first_mode"] = {"identified": False, "why": why}
+    rc.report["pickoff"] = {"value": p.pick, "identified": False,
+                            "why": "without a visible mode every pick-off gives the same signals"}
+    rc.notes = [n for n in rc.notes if "first mode" not in n]
+    rc.notes.append(f"the mechanics' first mode was {why}; the nominal {f_nom:.4g} Hz (zeta {z_nom:.3g}) is kept")
+    return False
+
+
+def _order(fitter, rc, struct, sat):
+    """A second lag stage of the amplifier, kept when it beats a first-order amplifier clearly
+    (asked again when it is in: what it absorbed may have been explained since)."""
+    p = rc.params
+    if p.tau2 > 0:
+        one = p.copy()
+        one.tau, one.tau2 = p.tau + p.tau2, 0.0
+        fitter.ordinary = [n for n in fitter.ordinary if n != "tau2"]
+        one = _fit(fitter, one, struct, fitter.ordinary, 20).params
+        gain, _ = _gain(fitter, one, p, 1)
+        if gain > ACCEPT["dbic"]:
+            fitter.ordinary = fitter.ordinary + ["tau2"]
+            rc.report["amplifier_order"] = {"value": 2, "bic_gain": round(gain, 1)}
+            return False
+        rc.params = one
+        rc.report["amplifier_order"] = {"value": 1, "bic_gain_of_order_2": round(gain, 1)}
+        return True
+    trials, screen = [], []
+    q_now = fitter.quick(p)
+    for share in (0.1, 0.25, 0.5):
+        q = p.copy()
+        tot = q.tau
+        q.tau, q.tau2 = tot * (1 - share), tot * share
+        screen.append((fitter.quick(q), share, q))
+    screen.sort(key=lambda t: t[0])
+    if _promise(fitter, q_now, screen[0][0]) < SCREEN:
+        rc.report["amplifier_order"] = {"value": 1, "why_not_2": "a second lag stage does not improve the fit"}
+        return False
+    for _, _, q in screen[:2]:
+        trials.append(_fit(fitter, q, struct, fitter.ordinary + ["tau2"], 20))
+    two = min(trials, key=lambda fr: fr.cost)
+    gain, _ = _gain(fitter, p, two.params, 1)
+    if gain > ACCEPT["dbic"] and not _edge(fitter, "tau2", two.params.tau2):
+        rc.params = two.params
+        fitter.ordinary = fitter.ordinary + ["tau2"]
+        rc.report["amplifier_order"] = {"value": 2, "bic_gain": round(gain, 1)}
+        return True
+    rc.report["amplifier_order"] = {"value": 1, "bic_gain_of_order_2": round(gain, 1)}
+    return False
+
+
+def _lags(fitter, rc, struct, sat):
+    """Sampling lags of the channels (whole samples, 0..MAX_LAG; with two channels only their
+    difference), kept when they beat no lag clearly."""
+    p = rc.params
+    chans = sorted({c for r in fitter.recs for c in r.channels()})
+    if len(chans) < 2:
+        # with one channel a sampling lag cannot be told from a command latency (time_delay)
+        rc.report["sampling_lags"] = {"identified": False, "x_samples": 0, "us_samples": 0,
+                                      "why": "one channel: a lag is the catalogue's time_delay"}
+        return False
+    combos = [(lx, 0) for lx in range(MAX_LAG + 1)] + [(0, lu) for lu in range(1, MAX_LAG + 1)]
+    q_now = fitter.quick(p)
+    screen = []
+    for lx, lu in combos:
+        if (lx, lu) == (p.lag_x, p.lag_us):
+            continue
+        q = p.copy()
+        q.lag_x, q.lag_us = lx, lu
+        # a lag trades off against the amplifier's lag: screened at three lags
+        best = min((fitter.quick(_scaled(q, k)), k) for k in (0.7, 1.0, 1.4))
+        screen.append((best[0], _scaled(q, best[1])))
+    screen.sort(key=lambda t: t[0])
+    changed = False
+    if screen and _promise(fitter, q_now, screen[0][0]) >= SCREEN:
+        q, _ = fitter.fit_scalar(screen[0][1], struct, "tau", bounds=(p.tau / 3, p.tau * 3), xatol=0.02)
+        q = _fit(fitter, q, struct, fitter.ordinary, 10).params
+        gain, _ = _gain(fitter, p, q, 1)
+        if gain > ACCEPT["dbic"]:
+            rc.params = p = q
+            changed = True
+            rc.report["sampling_lags"] = {"identified": True, "bic_gain": round(gain, 1)}
+    rc.report.setdefault("sampling_lags", {"identified": False})
+    rc.report["sampling_lags"].update({"x_samples": p.lag_x, "us_samples": p.lag_us})
+    return changed
+
+
+def _scaled(p, k):
+    q = p.copy()
+    q.tau *= k
+    return q
+
+
+def uncertainty(fitter: Fitter, p, struct, names):
+    """Relative standard uncertainty of each nonlinear parameter: Gauss-Newton covariance in log
+    coordinates, the residual's variance inflated by its integrated autocorrelation time."""
+    if not names:
+        return {}
+    r0 = fitter.varpro(p.copy(), struct)
+    cols = []
+    from .fit import set_value
+    for n in names:
+        q = p.copy()
+        v = get_value(q, n, fitter.dev)
+        h = 1e-3
+        hi = fitter.bounds(n)[1]
+        if v * math.exp(h) > hi:
+            h = -h
+        set_value(q, n, v * math.exp(h), fitter.dev)
+        cols.append((fitter.varpro(q, struct) - r0) / h)
+    J = np.column_stack(cols)
+    s2 = float(r0 @ r0) / max(r0.size - len(names), 1) * tau_int(r0)
+    try:
+        cov = np.linalg.inv(J.T @ J) * s2
+    except np.linalg.LinAlgError:
+        return {n: None for n in names}
+    return {n: float(f"{math.sqrt(max(cov[i, i], 0.0)):.3g}") for i, n in enumerate(names)}
+
+
+def relinearise(fitter, p, struct):
+    """Re-solve the linear parameters of ``p`` (after its dynamics changed)."""
+    q = p.copy()
+    solve_linear(fitter.recs, fitter.dev, q, fitter.lam, drift_terms=struct.drift_terms,
+                 replays=fitter.replays(q), gn_iter=2)
+    return q

@@ -1,0 +1,433 @@
+"""The results of a diagnosis: diagnosis.json's content, the model files, the predictions.
+
+:func:`assemble` turns the recalibration, the localisation and the selection into the
+``diagnosis.json`` dictionary (every number a plain number with its unit in its key or beside
+it); :func:`to_model` writes a parameter set back into a model file with provenance;
+:func:`localise` says where a residual lives (time windows, input segments, bands, operating
+range); the rest describes what is left unexplained.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import locate
+from .catalogue import CATALOGUE, describe_parameters
+from .engine import model_from_params, predict
+from .recordings import HELDOUT_EVERY
+from .select import ACCEPT, CONFIDENT
+from .stats import improvement_band, input_xcorr, tau_int, whiteness
+
+__all__ = ["assemble", "file_predictions", "localise", "nrmse", "rmse_as_given", "to_model"]
+
+
+def rmse_as_given(recs, dev, p):
+    out = {}
+    for c in ("x", "us"):
+        e = [getattr(r, c)[r.heldout] - predict(r, dev, p)[c][r.heldout] for r in recs if getattr(r, c) is not None]
+        if e:
+            out[c] = float(np.sqrt(np.mean(np.concatenate(e) ** 2)))
+    return out
+
+
+def localise(recs, fulls, ctxs, noise):
+    out = {}
+    for c in ("x", "us"):
+        per = [(r, f[c], ctx) for r, f, ctx in zip(recs, fulls, ctxs) if c in f]
+        if not per:
+            continue
+        e_all = np.concatenate([e for _, e, _ in per])
+        struct_rms = math.sqrt(max(float(np.mean(e_all ** 2)) - noise[c] ** 2, 0.0))
+        wins, seg, opr, bands = [], {}, None, []
+        for r, e, ctx in per:
+            score = np.clip(e * e - noise[c] ** 2, 0.0, None)
+            level = max(3.0 * noise[c] ** 2, 0.25 * float(np.mean(score)) + 1e-300)
+            for w in locate.windows(score, ctx, level, min_len_s=max(0.02, 0.002 * r.t[-1])):
+                sl = slice(w["k0"], w["k1"] + 1)
+                wins.append({"recording": r.name, "t0_s": round(r.t0 + w["t0"], 6), "t1_s": round(r.t0 + w["t1"], 6),
+                             "rms": float(np.sqrt(np.mean(e[sl] ** 2))),
+                             "why": locate.describe_window(ctx, w["k0"], w["k1"])})
+            for k, v in locate.segment_rms(e, ctx).items():
+                seg.setdefault(k, []).append(v)
+            bands += locate.bands(e, r.u, 1 / r.dt, noise[c])
+        seg = {k: {"rms": float(np.sqrt(np.mean([x["rms"] ** 2 for x in v]))),
+                   "share_of_samples": float(np.mean([x["share_of_samples"] for x in v]))} for k, v in seg.items()}
+        r0, e0, ctx0 = per[0]
+        opr = locate.operating_range(e0, r0.u, ctx0["rate"])
+        wins.sort(key=lambda w: -w["rms"])
+        out[c] = {"rms_all_samples": float(np.sqrt(np.mean(e_all ** 2))), "noise": noise[c],
+                  "structured_rms": struct_rms, "windows": wins[:6], "segments": seg,
+                  "bands": bands[:4], "operating_range": opr}
+    return out
+
+
+def file_predictions(recs, dev, p):
+    out = []
+    for r in recs:
+        pr = predict(r, dev, p)
+        out.append({c: r.sign.get(c, 1) * pr[c] for c in ("x", "us")})
+    return out
+
+
+def to_model(base, p, dev, recs, noise, what, sources):
+    src = dict(sources)
+    if len(p.thresholds) != len(base["hysteresis"]["thresholds"]):
+        src[("hysteresis", "thresholds")] = ("diagnose: the nominal thresholds plus their midpoints (a finer loop: "
+                                             "hysteresis_shape when named, else refined in the recalibration)")
+    m = model_from_params(base, p, src, dt=min(r.dt for r in recs))
+    if dev.u_min < base["amplifier"]["u_min"] or dev.u_max > base["amplifier"]["u_max"]:
+        m.set("amplifier", "u_min", float(f"{dev.u_min:.6g}"), "widened by diagnose: the recording's command exceeds the nominal rails")
+        m.set("amplifier", "u_max", float(f"{dev.u_max:.6g}"), "widened by diagnose: the recording's command exceeds the nominal rails")
+    u_lo = min(float(np.min(r.u)) for r in recs)
+    u_hi = max(float(np.max(r.u)) for r in recs)
+    c = m["compensator"]
+    if u_lo < c["uc_min"] or u_hi > c["uc_max"]:
+        m.set("compensator", "uc_min", float(f"{min(c['uc_min'], u_lo - 0.05 * abs(u_lo) - 1e-6):.6g}"),
+              "widened by diagnose: the recording's command range")
+        m.set("compensator", "uc_max", float(f"{max(c['uc_max'], u_hi + 0.05 * abs(u_hi) + 1e-6):.6g}"),
+              "widened by diagnose: the recording's command range")
+    if "us" in noise:
+        m.set("sensor", "noise_std", float(f"{noise['us']:.4g}"), "estimated by diagnose: white-noise floor of the sensor residual")
+    if "x" in noise:
+        m.set("measurement", "x_noise_std", float(f"{noise['x']:.4g}"), "estimated by diagnose: white-noise floor of the displacement residual")
+    m.set("model", "name", f"{base.name}-diagnosed", "")
+    m.set("model", "description", f"{base['model']['description']} ({what}, piezo-fmu diagnose)", "")
+    return m.check()
+
+
+def _heldout_rmse(recs, preds):
+    out = {}
+    for c in ("x", "us"):
+        e = [r.sign.get(c, 1) * getattr(r, c)[r.heldout] - pr[c][r.heldout]
+             for r, pr in zip(recs, preds) if getattr(r, c) is not None]
+        if e:
+            out[c] = float(np.sqrt(np.mean(np.concatenate(e) ** 2)))
+    return out
+
+
+def nrmse(recs, rmse):
+    vals = []
+    for c, v in rmse.items():
+        y = np.concatenate([getattr(r, c)[r.heldout] for r in recs if getattr(r, c) is not None])
+        vals.append(v / max(float(np.std(y)), 1e-300))
+    return float(np.sqrt(np.mean(np.square(vals)))) if vals else None
+
+
+def _where(f, recs, ctxs, dev, noise):
+    """Where a finding helped most (windows of the largest reduction of the squared residual),
+    and the band of the residual spectrum it removed."""
+    mech = CATALOGUE[f["name"]]
+    where, band = [], None
+    for r, ctx in zip(recs, ctxs):
+        pb, pa = predict(r, dev, f["before"]), predict(r, dev, f["after"])
+        for c in mech.channels:
+            y = getattr(r, c)
+            if y is None:
+                continue
+            e0, e1 = y - pb[c], y - pa[c]
+            gain = np.clip(e0 * e0 - e1 * e1, 0.0, None)
+            level = max(2.0 * noise[c] ** 2, 0.1 * float(np.max(
+                np.convolve(gain, np.ones(max(3, int(0.02 / r.dt))) / max(3, int(0.02 / r.dt)), "same"))))
+            for w in locate.windows(gain, ctx, level, min_len_s=max(0.02, 0.002 * r.t[-1]), max_windows=4):
+                sl = slice(w["k0"], w["k1"] + 1)
+                unit = "V" if c == "us" else "x units"
+                where.append({"t0_s": round(r.t0 + w["t0"], 6), "t1_s": round(r.t0 + w["t1"], 6),
+                              "channel": c, "energy": w["energy"],
+                              "why": f"{locate.describe_window(ctx, w['k0'], w['k1'])}; {c} residual rms "
+                                     f"{np.sqrt(np.mean(e0[sl] ** 2)):.3g} -> {np.sqrt(np.mean(e1[sl] ** 2)):.3g} {unit}",
+                              **({"recording": r.name} if len(recs) > 1 else {})})
+            if band is None:
+                band = improvement_band(e0, e1, 1 / r.dt)
+    where.sort(key=lambda w: -w.pop("energy"))
+    return where[:5], band
+
+
+def _finding(f, recs, ctxs, dev, noise, p_final, struct_final, dt):
+    name = f["name"]
+    mech = CATALOGUE[name]
+    cmp = f["cmp"]
+    where, band = _where(f, recs, ctxs, dev, noise)
+    return {
+        # the channel where it shows most; "channels": every recorded channel it acts on
+        "effect": name, "channel": max((c for c in mech.channels if c in cmp["channels"]),
+                                       key=lambda c: cmp["channels"][c]["explained"]),
+        "channels": [c for c in mech.channels if c in cmp["channels"]],
+        "confidence": round(f["confidence"], 3), "where": where, "band_hz": band,
+        "parameters": describe_parameters(name, p_final if name in struct_final.effects else f["after"], dev, dt),
+        "rmse_after": f["rmse_after"],
+        "evidence": {
+            "explained_share": {c: round(v["explained"], 4) for c, v in cmp["channels"].items()},
+            "explained_share_heldout": {c: round(v["explained_heldout"], 4) for c, v in cmp["channels"].items()},
+            "heldout_beta": round(cmp["beta_heldout"], 3), "heldout_z": round(cmp["z_heldout"], 1),
+            "likelihood_ratio": round(cmp["lr"], 2), "df": cmp["df"], "p_lr": cmp["p_lr"],
+            "delta_bic": round(cmp["dbic"], 2), "p_heldout_blocks": cmp["p_block"],
+            "heldout_blocks_better": f"{cmp['blocks_better']}/{cmp['blocks']}",
+            "effective_n": {c: round(v["n_eff"], 1) for c, v in cmp["channels"].items()},
+            "alternatives_tried": f["alternatives"], "note": f["note"],
+            "strongest_alternative": f.get("rival"),
+            **({"further_elements": [{"explained_share": {c: round(v["explained"], 4)
+                                                          for c, v in m["channels"].items()},
+                                      "delta_bic": round(m["dbic"], 2)} for m in f["more"]]}
+               if f.get("more") else {}),
+        },
+        "model": mech.model, "signature": mech.signature,
+    }
+
+
+def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final, findings, candidates,
+             rejected, noise, noise_ar, loc_base, ctxs, nominal_as_given, notes, base_struct_rms, recal):
+    dt = min(r.dt for r in recs)
+    base_preds = [predict(r, dev, p_base) for r in recs]
+    base_rmse = _heldout_rmse(recs, [{c: r.sign.get(c, 1) * pr[c] for c in ("x", "us")}
+                                     for r, pr in zip(recs, base_preds)])
+    out_findings = [_finding(f, recs, ctxs, dev, noise, p_final, struct_final, dt) for f in findings]
+    out_candidates = []
+    for f in candidates:
+        c = _finding(f, recs, ctxs, dev, noise, p_final, struct_final, dt)
+        c["why_not_named"] = (f"confidence {f['confidence']:.2f} is below {CONFIDENT}: the data support it, "
+                              "but not clearly enough to put it into the model")
+        out_candidates.append(c)
+    # final residual tests and what is still unexplained
+    final_preds = [predict(r, dev, p_final) for r in recs]
+    final_rmse = _heldout_rmse(recs, [{c: r.sign.get(c, 1) * pr[c] for c in ("x", "us")}
+                                      for r, pr in zip(recs, final_preds)])
+    tests, unexplained = {}, []
+    for c in noise:
+        e_all = []
+        for r, pr in zip(recs, final_preds):
+            y = getattr(r, c)
+            if y is None:
+                continue
+            e = y - pr[c]
+            e_all.append((r, e))
+        e_cat = np.concatenate([e for _, e in e_all])
+        r0, e0 = e_all[0]
+        ti = tau_int(e0)
+        tests[c] = {"whiteness": whiteness(e0, 20), "whiteness_decimated": whiteness(e0, 20, ti),
+                    "input_xcorr": input_xcorr(e0, r0.u, max(1, int(0.05 / r0.dt))),
+                    "noise": noise[c], "tau_int_samples": round(ti, 1),
+                    "structured_rms": math.sqrt(max(float(np.mean(e_cat ** 2)) - noise[c] ** 2, 0.0))}
+        struct_rms = tests[c]["structured_rms"]
+        where_range = _range_sentence(e0, r0.u, ctxs[0]["rate"], noise[c])
+        trend = _trend(e0, r0.t, noise[c])
+        if trend and struct_rms > 0.5 * noise[c]:
+            unexplained.append({
+                "channel": c, "band_hz": [0.0, round(2.0 / max(float(r0.t[-1]), 1e-9), 4)], "peak_hz": 0.0,
+                "rms": trend["rms"], "unit": UNITS[c], "coherence_with_input": None,
+                "description": (f"a slow trend of {c} over the recording ({trend['change']:+.3g} from start to end, "
+                                f"{100 * trend['share']:.0f} % of the structured residual), not tied to the "
+                                "input's changes: a drifting offset of the channel, not in the catalogue"
+                                + (" (a displacement drift would be thermal_drift, but it was not supported)"
+                                   if c == "x" else "")),
+                "where": [{"t0_s": round(r0.t0, 6), "t1_s": round(r0.t0 + float(r0.t[-1]), 6),
+                           "why": "the whole recording"}],
+            })
+        if struct_rms > 0.5 * noise[c] and struct_rms > 0.002 * float(np.std(np.concatenate(
+                [getattr(r, c) for r in recs if getattr(r, c) is not None]))):
+            for r, e in e_all:
+                ctx = ctxs[recs.index(r)]
+                for b in locate.bands(e, r.u, 1 / r.dt, noise[c], min_share=0.1):
+                    if b["rms"] < 0.3 * noise[c]:
+                        continue
+                    score = np.clip(_bandpass(e, b["band_hz"], 1 / r.dt) ** 2, 0, None)
+                    wins = locate.windows(score, ctx, 2.0 * float(np.mean(score)), max_windows=3,
+                                          min_len_s=max(0.02, 0.002 * r.t[-1]))
+                    unexplained.append({
+                        "channel": c, "band_hz": b["band_hz"], "peak_hz": b["peak_hz"], "rms": b["rms"],
+                        "unit": UNITS[c],
+                        "coherence_with_input": round(b["coherence"], 3),
+                        "description": _describe_band(b, noise[c], _dominant_freq(r.u, r.dt))
+                                       + (f"; {where_range}" if where_range else ""),
+                        "where": [{"t0_s": round(r.t0 + w["t0"], 6), "t1_s": round(r.t0 + w["t1"], 6),
+                                   "why": locate.describe_window(ctx, w["k0"], w["k1"])} for w in wins],
+                    })
+    unexplained.sort(key=lambda u: -u["rms"])
+    final_struct_rms = {c: tests[c]["structured_rms"] for c in tests}
+    if out_candidates:
+        unexplained.insert(0, {
+            "channel": out_candidates[0]["channel"], "band_hz": out_candidates[0]["band_hz"], "peak_hz": None,
+            "rms": None, "unit": UNITS[out_candidates[0]["channel"]], "coherence_with_input": None,
+            "description": "weakly supported: " + ", ".join(
+                f"{c['effect']} (confidence {c['confidence']:.2f})" for c in out_candidates)
+            + " would explain part of it (see 'candidates')",
+            "where": out_candidates[0]["where"][:3]})
+    nothing_missing = not out_findings and all(final_struct_rms[c] <= 0.5 * noise[c] for c in final_struct_rms)
+    if nothing_missing:
+        verdict = ("nothing is missing: the recalibrated nominal model explains the recording down to the "
+                   "noise (structured residual below half the noise level on every channel)")
+    elif out_findings:
+        verdict = "missing physics: " + ", ".join(f["effect"] for f in out_findings)
+        if unexplained:
+            verdict += "; some structured residual remains unexplained (see 'unexplained')"
+    elif unexplained:
+        verdict = ("a structured residual remains that no catalogue mechanism explains (see 'unexplained'); "
+                   "no mechanism is named")
+    else:
+        verdict = "no catalogue mechanism is supported by the data; the remaining residual is close to the noise"
+    first = recs[0]
+    block_s = float(first.t[-1] / (np.max(first.block) + 1))
+    return {
+        "units": {"x": UNITS["x"], "us": UNITS["us"],
+                  "note": "values per channel (rmse, noise, rms, residuals) are in that channel's unit; every "
+                          "other key names its unit (_s seconds, _hz hertz, _V volts, ...) or is dimensionless"},
+        "recordings": [{"file": r.name, "samples": int(r.n), "dt_s": r.dt, "duration_s": float(r.t[-1]),
+                        "channels": r.channels(), "sign": r.sign} for r in recs],
+        "baseline": {"rmse": base_rmse, "nrmse": nrmse(recs, base_rmse),
+                     "nominal_as_given_rmse": nominal_as_given,
+                     "structured_rms": base_struct_rms, "noise": noise,
+                     "noise_ar1": noise_ar,
+                     "recalibrated": recal_summary(p_base, dev, dt, recal),
+                     "structure": list(struct_nom.effects)},
+        "localisation": loc_base,
+        "findings": out_findings,
+        "candidates": out_candidates,
+        "rejected": rejected,
+        "unexplained": unexplained[:5],
+        "final": {"effects": list(struct_final.effects), "rmse": final_rmse, "nrmse": nrmse(recs, final_rmse),
+                  "structured_rms": final_struct_rms, "tests": tests, "verdict": verdict,
+                  "nothing_missing": nothing_missing},
+        "validation": {
+            "method": "interleaved blocks: each recording is cut into equal consecutive blocks; every "
+                      f"{HELDOUT_EVERY}th block (starting with block {HELDOUT_EVERY // 2}) is held out",
+            "blocks_per_recording": int(np.max(first.block) + 1), "block_s": block_s,
+            "heldout_fraction": float(np.mean(np.concatenate([r.heldout for r in recs]))),
+            "fitted_on": "the other blocks only (every parameter, every candidate)",
+            "simulation": "the model is driven by the recorded command through the whole recording "
+                          "(held-out blocks included); only the measured outputs of held-out blocks are "
+                          "withheld from fitting",
+            "selection": "candidates are accepted on training-row statistics (likelihood ratio, BIC with "
+                         "effective sample size) and on held-out improvement (share of the structured "
+                         "residual removed, one-sided test over held-out blocks); every rmse reported is "
+                         "over held-out samples",
+            "thresholds": ACCEPT,
+        },
+        "notes": notes,
+    }
+
+
+def _bandpass(e, band, fs):
+    from scipy.signal import butter, sosfiltfilt
+
+    lo, hi = band
+    ny = fs / 2
+    lo = max(lo, 1e-3 * ny)
+    hi = min(max(hi, lo * 1.2), 0.99 * ny)
+    try:
+        sos = butter(2, [lo / ny, hi / ny], btype="band", output="sos")
+        return sosfiltfilt(sos, e)
+    except ValueError:
+        return e - np.mean(e)
+
+
+def _trend(e, t, noise):
+    """A quadratic trend in time that carries most of a structured residual, or ``None``."""
+    tn = t / max(float(t[-1]), 1e-12)
+    a = np.vstack([np.ones_like(tn), tn, tn * tn]).T
+    coef, *_ = np.linalg.lstsq(a, e, rcond=None)
+    fit = a @ coef
+    structured = max(float(np.mean(e * e)) - noise ** 2, 0.0)
+    trend_var = float(np.var(fit))
+    if structured <= 0 or trend_var < 0.5 * structured or math.sqrt(trend_var) < 0.5 * noise:
+        return None
+    return {"rms": math.sqrt(trend_var), "change": float(fit[-1] - fit[0]),
+            "share": min(1.0, trend_var / structured)}
+
+
+def _range_sentence(e, u, rate, noise):
+    """Where over the operating range a residual is largest, when it clearly depends on it."""
+    rng = locate.operating_range(e, u, rate)
+    parts = []
+    for key, label, unit in (("rate", "command rate", "V/s"), ("amplitude", "command level", "V")):
+        rows = rng.get(key, [])
+        if len(rows) < 3:
+            continue
+        rms = np.array([r["rms"] for r in rows])
+        struct = np.sqrt(np.clip(rms ** 2 - noise ** 2, 0.0, None))
+        k_hi, k_lo = int(np.argmax(struct)), int(np.argmin(struct))
+        if struct[k_hi] > 1.5 * struct[k_lo] + 0.2 * noise:
+            lo, hi = rows[k_hi]["range"]
+            parts.append(f"largest at {label} {lo:.3g}-{hi:.3g} {unit} ({rms[k_hi]:.3g} rms against "
+                         f"{rms[k_lo]:.3g} at {rows[k_lo]['range'][0]:.3g}-{rows[k_lo]['range'][1]:.3g} {unit})")
+    return "; ".join(parts)
+
+
+def _dominant_freq(u, dt):
+    """Frequency [Hz] of a command dominated by one periodic component (else ``None``)."""
+    u = np.asarray(u, float) - np.mean(u)
+    if u.size < 16:
+        return None
+    spec = np.abs(np.fft.rfft(u * np.hanning(u.size))) ** 2
+    spec[0] = 0.0
+    k = int(np.argmax(spec))
+    share = float(np.sum(spec[max(1, k - 3):k + 4]) / max(np.sum(spec), 1e-300))
+    if share < 0.5 or k < 1 or k >= spec.size - 1:
+        return None
+    a, b, c = np.log(spec[k - 1:k + 2] + 1e-300)
+    off = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else 0.0
+    return float((k + off) / (u.size * dt))
+
+
+def _describe_band(b, noise, f0=None):
+    lo, hi = b["band_hz"]
+    width = hi - lo
+    harmonic = None
+    if f0:
+        k = round(b["peak_hz"] / f0)
+        if k >= 1 and abs(b["peak_hz"] - k * f0) <= max(0.03 * k * f0, b.get("df", 0.0)):
+            harmonic = k
+    if harmonic:
+        rel = (f"harmonic {harmonic} of the command's {f0:.4g} Hz: a periodic, phase-locked response to the "
+               "input that the model's loop shape (or another rate-independent nonlinearity) gets wrong")
+        if harmonic % 2 == 0:
+            rel += ("; an even harmonic means an asymmetry the symmetric play operators cannot draw (e.g. an "
+                    "asymmetric loop, or a displacement sensor that is not linear, like a capacitive gap sensor)")
+    elif b["coherence"] > 0.5:
+        rel = "coherent with the command: a response to the input that the model gets wrong"
+    elif b["coherence"] > 0.2:
+        rel = "partly coherent with the command"
+    else:
+        rel = "not coherent with the command: a disturbance or an interference, not a response to the input"
+    if width <= max(4.0 * b.get("df", 0.0), 0.25 * b["peak_hz"]) and b["peak_hz"] > 0:
+        kind = f"narrow-band line at {b['peak_hz']:.4g} Hz"
+    elif hi < 2.0:
+        kind = f"slow residual below {hi:.3g} Hz"
+    else:
+        kind = f"broad-band residual {lo:.4g}-{hi:.4g} Hz"
+    return f"{kind}, {b['rms']:.3g} rms ({b['rms'] / noise:.2g} x the noise), {rel}"
+
+
+UNITS = {"x": "um", "us": "V"}
+
+
+def recal_summary(p, dev, dt, recal):
+    """The recalibrated ordinary physics, each value with its unit and (for the nonlinear ones
+    fitted) its relative standard uncertainty."""
+    unc = recal.report.get("uncertainty", {}) if recal else {}
+    rep = recal.report if recal else {}
+    f1, z1 = p.mode(dev)
+
+    def val(v, digits=5):
+        return float(f"{v:.{digits}g}")
+
+    out = {
+        "amplifier_tau_s": {"value": val(p.tau), "relative_uncertainty": unc.get("tau")},
+        "amplifier_order": rep.get("amplifier_order", {}).get("value", 2 if p.tau2 > 0 else 1),
+        "amplifier_tau2_s": {"value": val(p.tau2), "relative_uncertainty": unc.get("tau2")},
+        "first_mode_hz": {"value": val(f1), "relative_uncertainty": unc.get("mech_f"),
+                          "identified": rep.get("first_mode", {}).get("identified", False),
+                          **({"why": rep["first_mode"]["why"]} if "why" in rep.get("first_mode", {}) else {})},
+        "first_mode_zeta": {"value": val(z1, 4), "relative_uncertainty": unc.get("mech_zeta")},
+        "sensor_follows": {"value": p.pick, "meaning": {
+            "stack": "the stack's blocked force (paper eq. 5)",
+            "contact": "the contact force between stack and push rod (the modes show in it)",
+            "load": "the load spring's force: the push-rod displacement"}[p.pick],
+            "identified": rep.get("pickoff", {}).get("identified", False)},
+        "sampling_lag_x_samples": p.lag_x, "sampling_lag_us_samples": p.lag_us,
+        "sampling_lag_x_s": val(p.lag_x * dt), "sampling_lag_us_s": val(p.lag_us * dt),
+        "u_norm_V": p.u_norm,
+        "pi_scale_um": val(np.sum(p.weights), 6), "x_offset_um": val(p.off_x, 6),
+        "sensor_sensitivity_V_per_N": val(p.S, 6), "sensor_offset_V": val(p.off_s, 6),
+        "saturation_um": val(p.y_sat, 6) if math.isfinite(p.y_sat) else None,
+    }
+    return out

@@ -1,0 +1,112 @@
+"""Scoring a recognition study: what diagnose named against what the generator put in.
+
+Every case result carries ``truth`` (the catalogue mechanisms present and visible), ``hidden``
+(present but too small to see: naming one is not a false name, missing one is no miss), the
+case ``group`` (clean, single, pair, control, one channel), ``named`` (``final.effects``), the
+``candidates`` (weaker findings, with confidence) and the verdict. Reported:
+
+* **recognised**: visible true mechanisms named, over all visible true mechanisms;
+* **false names**: cases with a name that is neither true nor hidden (a control's name never is);
+* **nothing is missing**: clean cases with that verdict;
+* **confidence calibration**: every reported mechanism (findings and candidates) by confidence
+  band, and how often it was right (true or hidden);
+* per mechanism and per group.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["BANDS", "markdown", "summarise"]
+
+BANDS = ((0.0, 0.25), (0.25, 0.5), (0.5, 0.75), (0.75, 0.9), (0.9, 1.0001))
+GROUPS = ("clean", "single", "pair", "control", "one channel")
+
+
+def _pct(a, b):
+    return f"{100 * a / b:.0f} % ({a}/{b})" if b else "-"
+
+
+def summarise(results, catalogue):
+    s = {"cases": len(results), "by_effect": {}, "by_group": {}, "calibration": []}
+    tp = fn = fp_cases = 0
+    reported = []
+    for r in results:
+        truth, hidden = set(r["truth"]), set(r.get("hidden", []))
+        named = set(r["named"])
+        wrong = named - truth - hidden
+        fp_cases += bool(wrong)
+        g = s["by_group"].setdefault(r["group"], {"cases": 0, "all_right": 0, "false_name_cases": 0, "true": 0,
+                                                 "recognised": 0, "nothing_missing": 0, "errors": 0})
+        g["cases"] += 1
+        g["false_name_cases"] += bool(wrong)
+        g["all_right"] += (named - hidden == truth)
+        g["nothing_missing"] += bool(r.get("nothing_missing"))
+        g["errors"] += bool(r.get("error"))
+        for e in truth:
+            hit = e in named
+            tp += hit
+            fn += not hit
+            g["true"] += 1
+            g["recognised"] += hit
+            be = s["by_effect"].setdefault(e, {"true": 0, "recognised": 0, "named_wrongly": 0, "candidate": 0})
+            be["true"] += 1
+            be["recognised"] += hit
+            be["candidate"] += (not hit) and e in r.get("candidates", {})
+        for e in wrong:
+            s["by_effect"].setdefault(e, {"true": 0, "recognised": 0, "named_wrongly": 0, "candidate": 0})
+            s["by_effect"][e]["named_wrongly"] += 1
+        for e, c in list(r.get("confidence", {}).items()) + list(r.get("candidates", {}).items()):
+            reported.append((c, e in truth or e in hidden, e in named))
+    for lo, hi in BANDS:
+        rows = [(c, right) for c, right, _ in reported if lo <= c < hi]
+        s["calibration"].append({"band": [lo, min(hi, 1.0)], "reported": len(rows),
+                                 "right": sum(1 for _, ok in rows if ok),
+                                 "mean_confidence": float(np.mean([c for c, _ in rows])) if rows else None})
+    named_rows = [(c, right) for c, right, is_named in reported if is_named]
+    s["named_right"] = sum(1 for _, ok in named_rows if ok)
+    s["named_total"] = len(named_rows)
+    s["recognition_rate"] = tp / max(tp + fn, 1)
+    s["false_name_case_rate"] = fp_cases / max(len(results), 1)
+    clean = s["by_group"].get("clean", {})
+    s["clean_nothing_missing_rate"] = clean.get("nothing_missing", 0) / max(clean.get("cases", 0), 1)
+    ctrl = s["by_group"].get("control", {})
+    s["controls_named"] = ctrl.get("false_name_cases", 0)
+    s["errors"] = sum(1 for r in results if r.get("error"))
+    secs = [r["seconds"] for r in results]
+    s["median_seconds"] = float(np.median(secs)) if secs else 0.0
+    s["max_seconds"] = float(np.max(secs)) if secs else 0.0
+    s["catalogue"] = list(catalogue)
+    return s
+
+
+def markdown(s, title=""):
+    lines = []
+    if title:
+        lines += [f"**{title}**", ""]
+    lines += ["| mechanism | recognised | named where absent (cases) | missed but a candidate |", "|---|---|---|---|"]
+    for e in s["catalogue"]:
+        b = s["by_effect"].get(e)
+        if not b:
+            continue
+        lines.append(f"| {e} | {_pct(b['recognised'], b['true'])} | {b['named_wrongly']} | {b['candidate']} |")
+    lines += ["", "| case group | cases | exactly right | recognised | cases with a false name | \"nothing is missing\" |",
+              "|---|---|---|---|---|---|"]
+    for g in GROUPS:
+        b = s["by_group"].get(g)
+        if not b:
+            continue
+        nm = _pct(b["nothing_missing"], b["cases"]) if g in ("clean", "control") else "-"
+        lines.append(f"| {g} | {b['cases']} | {_pct(b['all_right'], b['cases'])} | {_pct(b['recognised'], b['true'])} | "
+                     f"{_pct(b['false_name_cases'], b['cases'])} | {nm} |")
+    lines += ["", "| confidence | reported (findings and candidates) | right | mean confidence |", "|---|---|---|---|"]
+    for row in s["calibration"]:
+        lo, hi = row["band"]
+        mc = f"{row['mean_confidence']:.2f}" if row["mean_confidence"] is not None else "-"
+        lines.append(f"| {lo:.2f}-{hi:.2f} | {row['reported']} | {_pct(row['right'], row['reported'])} | {mc} |")
+    lines += ["", (f"Overall: recognised {100 * s['recognition_rate']:.0f} %; cases with a false name "
+                   f"{100 * s['false_name_case_rate']:.1f} %; clean cases \"nothing is missing\" "
+                   f"{100 * s['clean_nothing_missing_rate']:.0f} %; controls named {s['controls_named']}; named "
+                   f"mechanisms right {_pct(s['named_right'], s['named_total'])}; {s['cases']} cases, "
+                   f"{s['errors']} errors; seconds per case median {s['median_seconds']:.1f}, "
+                   f"max {s['max_seconds']:.1f}.")]
+    return "\n".join(lines)
