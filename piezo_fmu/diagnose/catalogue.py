@@ -139,7 +139,10 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
             return None
         # timing trades off against the loop's width: every point re-solves the weights
         nd_max = max(1, min(64, int(round(0.02 / dt))))
-        nds = sorted({int(round(v)) for v in np.exp(np.linspace(0, math.log(nd_max), 9))})
+        # every delay up to 10 samples (a delay is resolved to whole samples), log-spaced above
+        nds = sorted({k for k in range(1, min(nd_max, 10) + 1)}
+                     | {int(round(v)) for v in np.exp(np.linspace(math.log(10), math.log(nd_max), 6))
+                        if nd_max > 10})
         best, best_c = None, math.inf
         for nd in nds:
             # the total lag is roughly conserved: start the lag search from what is left of it
@@ -437,7 +440,9 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
         drift = float(np.ptp(p_after.rate * tt + p_after.curv * tt * tt))
         if "x" in ch and drift < 0.5 * ch["x"]["noise"]:
             return False, "drift over the recording below the noise"
-        share = _drift_in_sensor(fitter, p_after)
+        # with the sensor on the stack's own force a displacement drift cannot reach it; a sensor
+        # that follows the push rod (contact, load) sees a drift of the push rod's position too
+        share = _drift_in_sensor(fitter, p_after) if p_after.pick == "stack" else None
         if share is not None and share > 0.3:
             return False, (f"the same slow trend is in the sensor voltage ({100 * share:.0f} % of what a "
                            "trend of the force would give): it moves the force, so it is not a drift of "

@@ -306,6 +306,11 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                     alt = None if a is None else (a, items)
             if start is None and alt is None:
                 continue
+            # the screening's cost with the weights re-solved for the proposed dynamics (held
+            # weights fitted to other dynamics would make a good proposal look bad)
+            for x in (start, alt and alt[0]):
+                if x is not None and name != "hysteresis_shape":
+                    fitter.varpro(x, struct.with_effect(name, 0, len(x.creep)))
             q = min(fitter.quick(x, drift=name == "thermal_drift") for x in (start, alt and alt[0]) if x is not None)
             screened.append((q0 - q, name, start, alt))
         screened.sort(key=lambda s: -s[0])
