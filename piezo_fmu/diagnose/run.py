@@ -142,7 +142,7 @@ def _analyse(raw, model, say, max_rounds, time_budget_s):
     # and 3 above the nominal one (a slower response is a current limit or a delay, not a lag), a
     # saturation level no lower than 0.3 x the stroke; a fit that starts at one of these limits
     # restarts from here
-    fitter.limits["tau"] = (max(1e-7, p.tau / 20), 3 * p.tau)
+    fitter.limits["tau"] = (max(1e-7, p.tau / 20), 30 * p.tau)
     fitter.limits["tau2"] = (max(1e-7, p.tau / 100), 3 * p.tau)
     if math.isfinite(p.y_sat):
         fitter.limits["y_sat"] = (0.3 * stroke, max(1000 * stroke, 10 * p.y_sat))
