@@ -412,7 +412,8 @@ def test_twenty_seconds_at_ten_kilohertz_names_both_mechanisms(tmp_path):
     path = tmp_path / "big.csv"
     write_recording(path, case)
     assert case.t.size == 200001
-    d = diagnose([path], out=tmp_path / "out")
+    # no time budget: the result must not depend on how busy the machine is (speed: piezo-fmu bench)
+    d = diagnose([path], out=tmp_path / "out", time_budget_s=None)
     assert named(d) == ["creep", "time_delay"]
     assert d.result["final"]["rmse"]["x"] < 0.5 * d.result["baseline"]["rmse"]["x"]
 
