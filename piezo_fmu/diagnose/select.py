@@ -43,9 +43,13 @@ ACCEPT = {
     "bound": 0.01,           # a fitted value within 1 % (log scale) of its search range's ends is at a bound
 }
 CONFIDENT = 0.5              # findings at or above this confidence are named; below: candidates
-# a finer loop that removes less than this (structured rms, in noise rms of its best channel) is
-# how one specimen's loop differs from another's: it refines the recalibration, it is not named
-SHAPE_ORDINARY = 2.0
+# a finer loop is missing loop shape when it explains most of what is left (this share of the
+# structured residual on its best channel) by more than the noise (removed structured rms, in noise
+# rms); one that only trims a residual whose larger part stays is approximating a loop of another
+# kind (another hysteresis family, other thresholds): an ordinary difference, taken into the
+# recalibration, not named
+SHAPE_EXPLAINED = 0.7
+SHAPE_REMOVED = 1.0
 
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
@@ -361,14 +365,16 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         best = max((t for t in tried if t["passed"]), key=lambda t: _score(t["cmp"], t["name"]))
         if best["name"] == "hysteresis_shape":
             removed = max(_removed(v) for v in best["cmp"]["channels"].values())
-            if removed < SHAPE_ORDINARY:
-                step(f"round {rnd + 1}: the finer loop removes {removed:.2f} x the noise: an ordinary loop "
-                     "difference, taken into the recalibration (not named)")
+            explained = max(v["explained"] for v in best["cmp"]["channels"].values())
+            if removed < SHAPE_REMOVED or explained < SHAPE_EXPLAINED:
+                step(f"round {rnd + 1}: the finer loop explains {100 * explained:.0f} % ({removed:.2f} x the "
+                     "noise): an ordinary loop difference, taken into the recalibration (not named)")
                 struct = struct.refine(len(best["fit"].params.thresholds) - len(p_base.thresholds))
                 current = fitter.fit(best["fit"].params, struct, max_nfev=10).params
                 if recal is not None:
                     recal.report["loop"] = {"operators": len(current.thresholds), "refined": True,
-                                            "removed_noise_multiples": round(removed, 2)}
+                                            "removed_noise_multiples": round(removed, 2),
+                                            "explained_share": round(explained, 3)}
                 sets_cur, _ = residual_sets(fitter, current)
                 continue
         # the strongest competitor on the same residual (a failed one counts half)
