@@ -443,8 +443,13 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 for f in findings:
                     if f["name"] == name:
                         f["backward"] = cmp
+    accepted = {f["name"] for f in findings}
     for f in findings:
-        f["confidence"] = confidence(f["cmp"], f["name"], f["alt_share"])
+        # a rival that is itself accepted explained another part of the residual (two mechanisms),
+        # not the same part another way: it does not make this finding less unique
+        rival = (f.get("rival") or {}).get("effect")
+        alt = 0.0 if rival in accepted else f["alt_share"]
+        f["confidence"] = confidence(f["cmp"], f["name"], alt)
 
     # -- weak findings become candidates: the model keeps only the confident ones -----------------------
     weak = [f for f in findings if f["confidence"] < CONFIDENT]
