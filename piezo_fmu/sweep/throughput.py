@@ -13,9 +13,9 @@ written (the store and the report are not the engine). Figures:
 * ``sweep_overhead_per_task_ms``: on 1 worker, the wall time not spent in runs, per dask task
   (a task carries a batch of runs, sized to take about half a second), and
   ``sweep_overhead_fraction``: that time over the wall time;
-* ``sweep_machine_scaling_efficiency``: the same runs split over 1, then 2 plain processes
-  (``concurrent.futures``, no dask, no scheduler): what the machine itself gives a second
-  process. On a shared machine it is below 1 whatever the engine does, and
+* ``sweep_machine_scaling_efficiency``: the same runs in chunks of 10 over 1, then 2 plain
+  processes (``concurrent.futures``, no dask, no scheduler): what the machine itself gives a
+  second process. On a shared machine it is below 1 whatever the engine does, and
   ``sweep_engine_efficiency = sweep_scaling_efficiency / sweep_machine_scaling_efficiency`` is
   the engine's own share.
 """
@@ -45,53 +45,73 @@ kernels = "{kernels}"
 "hysteresis.weights" = {{ tolerance_pct = 20 }}
 """
 
-SIZES = {"full": {"runs": 400, "periods": 3, "kernels": "numba", "reps": 2},
+SIZES = {"full": {"runs": 400, "periods": 3, "kernels": "numba", "reps": 3},
          "tiny": {"runs": 8, "periods": 0.2, "kernels": "python", "reps": 1}}
 
 
 def measure_throughput(size="full", workers=(1, 2), say=None) -> dict:
-    """The figures of the module docstring (``size``: full or tiny; ``workers``: the two cluster
-    sizes compared). The best of ``reps`` passes per cluster size."""
+    """The figures of the module docstring (``size``: full or tiny; ``workers``: the two sizes
+    compared). All four set-ups (two local clusters, two process pools) are started and warmed
+    first, then measured in turns, ``reps`` rounds, the best of each: a ratio of two measurements
+    taken a minute apart would carry the shared machine's drift."""
+    import contextlib
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
     from ..parallel import Engine
-    from .runner import RunContext, run_task, warm
+    from .runner import RunContext, warm
     from .spec import loads_spec
 
     say = say or (lambda msg: None)
     cfg = SIZES[size]
     spec = loads_spec(SPEC.format(count=cfg["runs"], periods=cfg["periods"], kernels=cfg["kernels"]))
     context = RunContext(spec)
-    out = {"sweep_runs": cfg["runs"], "sweep_kernels": cfg["kernels"], "sweep_workers": list(workers)}
-    rates = {}
-    for n in workers:
-        say(f"sweep throughput: {cfg['runs']} runs on a local cluster of {n} worker(s)")
-        best = None
-        with Engine(workers=n) as engine:
-            engine.warm(warm, context)
-            for _ in range(cfg["reps"]):
-                tasks0 = engine.tasks
-                t0 = time.perf_counter()
-                rows = [row for _, row in engine.map(run_task, range(spec.n_runs), context=context)]
-                wall = time.perf_counter() - t0
-                busy = sum(r["seconds"] for r in rows)
-                bad = [r for r in rows if r["status"] != "ok"]
-                if bad:
-                    raise RuntimeError(f"sweep throughput: a run failed: {bad[0]['error']}")
-                if best is None or wall < best[0]:
-                    best = (wall, busy, engine.tasks - tasks0)
-        wall, busy, tasks = best
-        rates[n] = spec.n_runs / wall
-        out[f"sweep_runs_per_s_{n}"] = rates[n]
-        if n == workers[0]:
-            out["sweep_run_ms"] = 1e3 * busy / spec.n_runs
-            out["sweep_overhead_per_task_ms"] = 1e3 * max(wall * n - busy, 0.0) / max(tasks, 1)
-            out["sweep_overhead_fraction"] = max(wall * n - busy, 0.0) / (wall * n)
-            out["sweep_tasks_1"] = tasks
+    n_runs = spec.n_runs
+    out = {"sweep_runs": n_runs, "sweep_kernels": cfg["kernels"], "sweep_workers": list(workers)}
+    best = {}
+    with contextlib.ExitStack() as stack:
+        say(f"sweep throughput: local clusters of {' and '.join(map(str, workers))} worker(s) and as "
+            "many plain processes, warming")
+        engines = {n: stack.enter_context(Engine(workers=n)) for n in workers}
+        pools = {n: stack.enter_context(ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"),
+                                                            initializer=warm, initargs=(context,)))
+                 for n in workers}
+        for n in workers:
+            engines[n].warm(warm, context)
+            list(pools[n].map(_runs, [context] * n, [[0]] * n))      # every process started, warm
+        for r in range(cfg["reps"]):
+            say(f"sweep throughput: {n_runs} runs on each set-up, round {r + 1} of {cfg['reps']}")
+            for n in workers:
+                best[("dask", n)] = min(best.get(("dask", n), (float("inf"),)), _on_engine(engines[n], context))
+                best[("plain", n)] = min(best.get(("plain", n), float("inf")),
+                                         _on_pool(pools[n], context, n_runs, n))
     a, b = workers[0], workers[-1]
-    out["sweep_scaling_efficiency"] = (rates[b] / rates[a]) / (b / a)
-    plain = {n: _plain_processes(context, spec.n_runs, n, cfg["reps"], say) for n in (a, b)}
-    out["sweep_machine_scaling_efficiency"] = (plain[b] / plain[a]) / (b / a)
+    for n in workers:
+        out[f"sweep_runs_per_s_{n}"] = n_runs / best[("dask", n)][0]
+    wall, busy, tasks = best[("dask", a)]
+    out["sweep_run_ms"] = 1e3 * busy / n_runs
+    out["sweep_overhead_per_task_ms"] = 1e3 * max(wall * a - busy, 0.0) / max(tasks, 1)
+    out["sweep_overhead_fraction"] = max(wall * a - busy, 0.0) / (wall * a)
+    out["sweep_tasks_1"] = tasks
+    out["sweep_scaling_efficiency"] = (best[("dask", a)][0] / best[("dask", b)][0]) / (b / a)
+    out["sweep_plain_runs_per_s_1"] = n_runs / best[("plain", a)]
+    out["sweep_machine_scaling_efficiency"] = (best[("plain", a)] / best[("plain", b)]) / (b / a)
     out["sweep_engine_efficiency"] = out["sweep_scaling_efficiency"] / out["sweep_machine_scaling_efficiency"]
     return out
+
+
+def _on_engine(engine, context):
+    """``(wall [s], seconds inside the runs [s], tasks)`` of one pass over all runs."""
+    from .runner import run_task
+
+    tasks0 = engine.tasks
+    t0 = time.perf_counter()
+    rows = [row for _, row in engine.map(run_task, range(context.spec.n_runs), context=context)]
+    wall = time.perf_counter() - t0
+    bad = [r for r in rows if r["status"] != "ok"]
+    if bad:
+        raise RuntimeError(f"sweep throughput: a run failed: {bad[0]['error']}")
+    return wall, sum(r["seconds"] for r in rows), engine.tasks - tasks0
 
 
 def _runs(context, indices):
@@ -100,21 +120,11 @@ def _runs(context, indices):
     return [run_task(context, i)["status"] for i in indices]
 
 
-def _plain_processes(context, n_runs, n, reps, say):
-    """Runs per second of ``n`` warmed plain processes, each running an equal share in order."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    from .runner import warm
-
-    say(f"sweep throughput: the same runs on {n} plain process(es), no dask")
-    shares = [list(range(k, n_runs, n)) for k in range(n)]
-    with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=warm,
-                             initargs=(context,)) as pool:
-        list(pool.map(_runs, [context] * n, [[0]] * n))          # every process started and warm
-        best = 0.0
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            list(pool.map(_runs, [context] * n, shares))
-            best = max(best, n_runs / (time.perf_counter() - t0))
-    return best
+def _on_pool(pool, context, n_runs, n, chunk=10):
+    """Wall time [s] of ``n`` warmed plain processes taking chunks of ``chunk`` runs as they
+    finish (dynamic, like dask's batches, so a process the machine starves does not hold up
+    the others)."""
+    chunks = [list(range(k, min(k + chunk, n_runs))) for k in range(0, n_runs, chunk)]
+    t0 = time.perf_counter()
+    list(pool.map(_runs, [context] * len(chunks), chunks))
+    return time.perf_counter() - t0
