@@ -273,7 +273,7 @@ def drift(t, p: Params):
     return p.off_x + p.rate * t + p.curv * t * t
 
 
-def _saturate(hx, y_sat):
+def saturate(hx, y_sat):
     if not math.isfinite(y_sat):
         return hx
     return hx / (1.0 + np.abs(hx) / y_sat)
@@ -296,7 +296,7 @@ def stroke(rec: Recording, dev: Device, p: Params, rp: Replay | None = None):
     """Hysteretic free stroke ``x_h`` [um] (saturated), from the stored operators or computed directly."""
     if rp is not None:
         hx = np.asarray(p.weights, float) @ rp.z
-        return _saturate(hx, p.y_sat)
+        return saturate(hx, p.y_sat)
     ua = amplifier_output(rec, dev, p)
     pi_run = _kernels()[2]
     y_inv = 1.0 / p.y_sat if math.isfinite(p.y_sat) else 0.0

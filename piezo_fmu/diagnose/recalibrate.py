@@ -32,7 +32,7 @@ import numpy as np
 from .catalogue import spectral_peaks
 from .engine import predict
 from .fit import Fitter, Structure, free_names, get_value
-from .select import ACCEPT, full_residuals, residual_sets
+from .residuals import ACCEPT, full_residuals, residual_sets
 from .stats import compare, noise_level, tau_int
 from .varpro import solve_linear
 

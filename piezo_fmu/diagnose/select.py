@@ -26,22 +26,12 @@ import time
 import numpy as np
 
 from .catalogue import CATALOGUE, plausible, propose, residual_peaks
-from .engine import predict
 from .fit import Fitter, free_names, get_value, strip
+from .residuals import ACCEPT, full_residuals, residual_sets
 from .stats import compare, noise_level
 
 __all__ = ["ACCEPT", "CONFIDENT", "confidence", "full_residuals", "noise_levels", "residual_sets", "select"]
 
-# Acceptance thresholds (see docs/diagnose.md, "How a finding is decided").
-ACCEPT = {
-    "p_lr": 1e-3,            # likelihood-ratio test on training rows (effective sample size)
-    "dbic": 10.0,            # BIC difference (effective sample size), > 10 = very strong
-    "explained": 0.15,       # share of the structured residual removed (its best channel)
-    "beta_heldout": 0.5,     # held-out residual regressed on the candidate's change there (1 = all of it)
-    "z_heldout": 3.0,        # ... and that regression's significance
-    "worse": 0.02,           # no channel's held-out RMSE may grow by more than this
-    "bound": 0.01,           # a fitted value within 1 % (log scale) of its search range's ends is at a bound
-}
 CONFIDENT = 0.5              # findings at or above this confidence are named; below: candidates
 # a finer loop is missing loop shape when it explains most of what is left (this share of the
 # structured residual on its best channel) by more than the noise (removed structured rms, in noise
@@ -53,37 +43,6 @@ SHAPE_REMOVED = 1.0
 
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
-
-
-def residual_sets(fitter: Fitter, p):
-    """channel -> train/heldout residuals, held-out blocks, weight (model orientation)."""
-    out = {}
-    rps = fitter.replays(p)
-    preds = [predict(r, fitter.dev, p, rp) for r, rp in zip(fitter.recs, rps)]
-    for ch in ("x", "us"):
-        tr, ho, blocks = [], [], []
-        for r, pr in zip(fitter.recs, preds):
-            y = getattr(r, ch)
-            if y is None:
-                continue
-            e = y - pr[ch]
-            tr.append(e[r.train])
-            ho.append(e[r.heldout])
-            for b in np.unique(r.block[r.heldout]):
-                blocks.append(e[r.block == b])
-        if tr:
-            out[ch] = {"train": np.concatenate(tr), "heldout": np.concatenate(ho), "blocks": blocks,
-                       "lam": fitter.lam[ch]}
-    return out, preds
-
-
-def full_residuals(fitter, p):
-    rps = fitter.replays(p)
-    out = []
-    for r, rp in zip(fitter.recs, rps):
-        pr = predict(r, fitter.dev, p, rp)
-        out.append({ch: getattr(r, ch) - pr[ch] for ch in r.channels()})
-    return out
 
 
 def noise_levels(fitter: Fitter, p):

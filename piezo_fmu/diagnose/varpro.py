@@ -15,7 +15,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.optimize import lsq_linear
 
-from .engine import _saturate, chain, predict, replay, shift
+from .engine import chain, predict, replay, saturate, shift
 from .model_io import Device, Params
 
 __all__ = ["residuals", "solve_linear"]
@@ -27,7 +27,7 @@ def _design(rec, dev, p, rp, lin_w):
     if math.isfinite(p.y_sat) and lin_w is not None:
         h0 = lin_w @ z
         gp = 1.0 / (1.0 + np.abs(h0) / p.y_sat) ** 2
-        c0 = _saturate(h0, p.y_sat) - gp * h0
+        c0 = saturate(h0, p.y_sat) - gp * h0
         cols = np.vstack([z * gp, c0[None, :]])
     else:
         cols = np.vstack([z, np.zeros((1, z.shape[1]))])
