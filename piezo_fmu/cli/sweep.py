@@ -53,14 +53,19 @@ def cmd_sweep(args):
     from ..sweep import sweep
 
     bar = progress_for(args, "sweep")
+
+    def progress(fraction, message=""):       # "done" only after the report, not with the last run
+        bar(None if fraction is None else min(fraction, 0.999), message)
+
     try:
         summary = sweep(args.spec, args.out, scheduler=args.scheduler, workers=args.workers,
-                        resume=args.resume, force=args.force, progress=bar)
+                        resume=args.resume, force=args.force, progress=progress)
     except KeyboardInterrupt:
         bar.close()
         print(f"piezo-fmu sweep: interrupted; the finished runs are in {args.out}/results.parquet "
               f"(continue with --resume)", file=sys.stderr)
         return 130
+    bar(1.0)
     bar.close()
     line = (f"{summary['runs']} runs ({summary['computed']} computed now): {summary['ok']} ok, "
             f"{summary['error']} failed" + (f", {summary['lost']} lost with their workers" if summary["lost"] else ""))

@@ -118,7 +118,8 @@ def sweep(spec, out, scheduler=None, workers=None, resume=False, force=False, pr
             say(f"{len(todo)} of {spec.n_runs} runs to compute; starting the engine")
             with Engine(scheduler, workers) as engine:
                 described = engine.describe()
-                say(f"engine: {described}; compiling on each worker")
+                say(f"engine: {described}" + ("; compiling numba on each worker"
+                                              if spec.experiment["kernels"] == "numba" else ""))
                 engine.warm(warm, context)
                 say(f"running {len(todo)} runs")
                 t_runs = time.perf_counter()

@@ -86,7 +86,8 @@ EXPERIMENT = {
     "noise": Field(None, "bool", default=True, doc="include the model's sensor noise"),
     "fmu_dir": Field(None, "str", default=None, varies=False,
                      doc="cosim: folder with Actuator.fmu, Sensor.fmu, Compensator.fmu, where the "
-                         "runs execute (default: built from the base model and sent to the workers)"),
+                         "runs execute, relative to the spec file (default: built from the base model "
+                         "and sent to the workers)"),
 }
 
 METRICS = {

@@ -162,6 +162,8 @@ def loads_spec(text, origin="<spec>", base_dir=None) -> SweepSpec:
         raise SpecError(f"{origin}: experiment.periods: a {e['signal']} has no period; give stop_time")
     if e["fmu_dir"] is not None and e["engine"] != "cosim":
         raise SpecError(f"{origin}: experiment.fmu_dir: only with engine = \"cosim\"")
+    if e["fmu_dir"] is not None and not Path(e["fmu_dir"]).expanduser().is_absolute():
+        e["fmu_dir"] = str(Path(base_dir or ".") / Path(e["fmu_dir"]).expanduser())
 
     # metrics
     if metrics["skip_periods"] and metrics["skip_time"]:
