@@ -156,6 +156,23 @@ def _pool():
     return _POOL
 
 
+def _gain_offset(pr, y, basis, bb, by, k):
+    """Least squares ``y ~ c[0] pr + c[1:] @ basis[:k]`` from the precomputed ``bb = basis @ basis.T``
+    and ``by = basis @ y``: returns ``(c, rhs)`` (``rhs`` the normal equations' right side)."""
+    g = np.empty((k + 1, k + 1))
+    rhs = np.empty(k + 1)
+    g[0, 0] = pr @ pr
+    g[0, 1:] = g[1:, 0] = basis[:k] @ pr
+    g[1:, 1:] = bb[:k, :k]
+    rhs[0] = pr @ y
+    rhs[1:] = by[:k]
+    try:
+        c = np.linalg.solve(g, rhs)
+    except np.linalg.LinAlgError:
+        c = np.linalg.lstsq(g, rhs, rcond=None)[0]
+    return c, rhs
+
+
 @dataclass
 class FitResult:
     params: Params
@@ -283,17 +300,7 @@ class Fitter:
             pr = np.concatenate([pd[ch][r.train] for r, pd in zip(self.recs, preds)
                                  if getattr(r, ch) is not None])
             k = 3 if (drift and ch == "x") else 1
-            g = np.empty((k + 1, k + 1))
-            rhs = np.empty(k + 1)
-            g[0, 0] = pr @ pr
-            g[0, 1:] = g[1:, 0] = basis[:k] @ pr
-            g[1:, 1:] = bb[:k, :k]
-            rhs[0] = pr @ y
-            rhs[1:] = by[:k]
-            try:
-                c = np.linalg.solve(g, rhs)
-            except np.linalg.LinAlgError:
-                c = np.linalg.lstsq(g, rhs, rcond=None)[0]
+            c, rhs = _gain_offset(pr, y, basis, bb, by, k)
             sse += self.lam[ch] * max(yy - float(c @ rhs), 0.0)
         return sse
 
@@ -313,17 +320,7 @@ class Fitter:
             pr = np.concatenate([pd[ch][r.train] for r, pd in zip(self.recs, preds)
                                  if getattr(r, ch) is not None])
             k = 1 + (struct.drift_terms if ch == "x" else 0)
-            g = np.empty((k + 1, k + 1))
-            rhs = np.empty(k + 1)
-            g[0, 0] = pr @ pr
-            g[0, 1:] = g[1:, 0] = basis[:k] @ pr
-            g[1:, 1:] = bb[:k, :k]
-            rhs[0] = pr @ y
-            rhs[1:] = by[:k]
-            try:
-                c = np.linalg.solve(g, rhs)
-            except np.linalg.LinAlgError:
-                c = np.linalg.lstsq(g, rhs, rcond=None)[0]
+            c, rhs = _gain_offset(pr, y, basis, bb, by, k)
             e = y - c[0] * pr - c[1:] @ basis[:k]
             out.append(math.sqrt(self.lam[ch]) * e)
         return np.concatenate(out)

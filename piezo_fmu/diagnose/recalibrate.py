@@ -140,6 +140,16 @@ ITEM_PARAMS = {"mode": ("mech_f", "mech_zeta"), "order": ("tau2",), "lags": ()}
 ITEM_K = {"mode": 3, "order": 1, "lags": 1}     # parameters each item adds (the mode: f, zeta, pick-off)
 
 
+def _mode_not_identified(rc: Recalibration, p, why, f_nom, z_nom):
+    """Report that the first mode stays nominal (and so does the pick-off); returns False."""
+    rc.report["first_mode"] = {"identified": False, "why": why}
+    rc.report["pickoff"] = {"value": p.pick, "identified": False,
+                            "why": "without a visible mode every pick-off gives the same signals"}
+    rc.notes = [n for n in rc.notes if "first mode" not in n]
+    rc.notes.append(f"the mechanics' first mode was {why}; the nominal {f_nom:.4g} Hz (zeta {z_nom:.3g}) is kept")
+    return False
+
+
 def without(p, item, rc: Recalibration):
     """A copy of ``p`` without the ordinary ``item`` (nothing else changed)."""
     q = p.copy()
@@ -223,12 +233,7 @@ def _mode(fitter, rc, struct, sat):
     q_now = fitter.quick(p)
     if _promise(fitter, q_now, grid[0][0]) < SCREEN:
         why = "not visible in this recording (no mode frequency improves the fit)"
-        rc.report["first_mode"] = {"identified": False, "why": why}
-        rc.report["pickoff"] = {"value": p.pick, "identified": False,
-                                "why": "without a visible mode every pick-off gives the same signals"}
-        rc.notes = [n for n in rc.notes if "first mode" not in n]
-        rc.notes.append(f"the mechanics' first mode was {why}; the nominal {f_nom:.4g} Hz (zeta {z_nom:.3g}) is kept")
-        return False
+        return _mode_not_identified(rc, p, why, f_nom, z_nom)
     tried, seen = [], set()
     for _, pick, at, f, z in grid:
         key = (pick, at, round(math.log(f), 1))
@@ -256,12 +261,7 @@ def _mode(fitter, rc, struct, sat):
         rc.notes = [n for n in rc.notes if "first mode" not in n]
         return True
     why = ("at the end of its search range" if edge else f"not visible in this recording (BIC gain {gain:.1f})")
-    rc.report["first_mode"] = {"identified": False, "why": why}
-    rc.report["pickoff"] = {"value": p.pick, "identified": False,
-                            "why": "without a visible mode every pick-off gives the same signals"}
-    rc.notes = [n for n in rc.notes if "first mode" not in n]
-    rc.notes.append(f"the mechanics' first mode was {why}; the nominal {f_nom:.4g} Hz (zeta {z_nom:.3g}) is kept")
-    return False
+    return _mode_not_identified(rc, p, why, f_nom, z_nom)
 
 
 def _order(fitter, rc, struct, sat):
