@@ -127,12 +127,13 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
             return None
         # a current limit slows the steps the lag had been fitted to: faster lags with it too
         grid = []
-        for k in (1.0, 0.4, 0.15):
+        for k in (1.0, 0.4, 0.15, 0.06):
             q = _with(p, tau=max(p.tau * k, fitter.bounds("tau")[0]), tau2=p.tau2 * k)
             rmax = max(float(np.max(np.abs(np.diff(amplifier_output(r, fitter.dev, q))))) / r.dt
                        for r in fitter.recs)
             grid += [{"slew": s, "tau": q.tau, "tau2": q.tau2} for s in _log_grid(0.02 * rmax, 0.9 * rmax, 10)]
-        best, _ = fitter.grid(p, grid)
+        # the weights re-solved at every point: a lag fitted to slew-limited steps bends the loop
+        best, _ = fitter.grid(p, grid, solve=struct.with_effect(name))
         return best
     if name == "time_delay":
         if p.delay > 0:

@@ -426,8 +426,13 @@ class Fitter:
         f(sol.x)
         return p, float(sol.fun)
 
-    def grid(self, p0: Params, setters):
-        """Screen a list of parameter assignments (dicts name -> value); return the best params."""
+    def grid(self, p0: Params, setters, solve: Structure | None = None):
+        """Screen a list of parameter assignments (dicts name -> value); return the best params.
+
+        With the weights held (``quick``), or, given ``solve`` (the structure), with the linear
+        parameters re-solved at every point (``varpro``): for dynamics the held weights had been
+        bent to stand in for (a lag fitted to slew-limited steps), only re-solved weights let the
+        right dynamics show their gain."""
         best, best_c = None, math.inf
         for assign in setters:
             p = p0.copy()
@@ -438,7 +443,11 @@ class Fitter:
                     p.res = v
                 else:
                     set_value(p, n, v, self.dev)
-            c = self.quick(p)
+            if solve is not None:
+                r = self.varpro(p, solve)
+                c = float(r @ r)
+            else:
+                c = self.quick(p)
             if c < best_c:
                 best, best_c = p, c
         return best, best_c
