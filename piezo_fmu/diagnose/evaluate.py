@@ -98,18 +98,18 @@ def _visibility(spec, case):
     for eff in spec["effects"]:
         if eff not in EFFECTS:
             continue
+        if eff == "hysteresis_shape":
+            # what a recalibration cannot absorb: the best PI on the nominal thresholds misses the
+            # finer loop by this many noise rms (as hysteresis stroke, best channel; see synth)
+            vis[eff] = case.truth["shape_misfit"]["misfit"]
+            continue
         off = plant.copy()
-        if eff == "hysteresis_shape":       # the added operators sit between the nominal ones
-            h = plant["hysteresis"]
-            off.set("hysteresis", "thresholds", h["thresholds"][::2], "off")
-            off.set("hysteresis", "weights", h["weights"][::2], "off")
         for key in {"creep": [("creep", "gains"), ("creep", "time_constants")],
                     "sensor_leakage": [("sensor", "tau_leak")],
                     "amplifier_current_limit": [("amplifier", "I_max")],
                     "time_delay": [("amplifier", "delay")],
                     "extra_resonance": [("resonance", "f_n")],
-                    "thermal_drift": [("drift", "rate"), ("drift", "curvature")],
-                    "hysteresis_shape": []}[eff]:
+                    "thermal_drift": [("drift", "rate"), ("drift", "curvature")]}[eff]:
             off.set(key[0], key[1], ref[key[0]][key[1]], "off")
         sig = Signal("table", t=case.t, values=case.u, column="u")
         a = simulate(plant, sig, float(case.t[-1]), step=1 / case.truth["fs"], mode="open", noise=False)

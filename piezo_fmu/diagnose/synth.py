@@ -4,7 +4,8 @@ A *case* is: an excitation programme (sine sets at 0.5-50 Hz, steps and holds, d
 chirps, in random order), a plant (the nominal model with its ordinary parameters perturbed, as any
 real specimen differs from the data sheet, plus zero or more mechanisms of the catalogue switched
 on with random parameter values; ``hysteresis_shape`` adds play operators between the nominal
-ones), and measurement noise on the displacement and the sensor voltage. The plant is run by the core (``simulate``, open loop, command held over each sample),
+ones, their weights raised until the best PI on the nominal thresholds misses the finer loop by
+``SHAPE_VISIBLE`` noise rms: a shape a recalibration absorbs is no shape), and measurement noise on the displacement and the sensor voltage. The plant is run by the core (``simulate``, open loop, command held over each sample),
 exactly the physics the FMUs run. The truth (which mechanisms, which values) is returned separately
 and never written into the recording.
 
@@ -46,6 +47,10 @@ PROGRAMMES = ("sines", "steps", "triangles", "chirp")
 NOISE = {"low": (0.002, 0.0005), "mid": (0.01, 0.002), "high": (0.03, 0.006)}
 
 SRC = "synthetic plant (piezo_fmu.diagnose.synth)"
+# a hysteresis_shape is made visible: the best PI on the nominal thresholds misses the finer loop by
+# at least this many noise rms (the rig's VISIBLE), the added weights raised by up to this factor
+SHAPE_VISIBLE = 3.0
+SHAPE_MAX_FACTOR = 20.0
 
 
 # -- excitation ------------------------------------------------------------------------------------
@@ -225,9 +230,16 @@ def make_case(seed, effects=(), noise="mid", kinds=None, fs=5000.0, channels=("x
     for name in effects:
         chosen[name] = (params or {}).get(name) or default_effect(name, rng, fs, duration)
     plant = make_plant(base, rng, chosen, perturb)
-    res = simulate(plant, Signal("table", t=t, values=u, column="u"), duration, step=1.0 / fs,
-                   mode="open", noise=False)
+    sig = Signal("table", t=t, values=u, column="u")
+    res = simulate(plant, sig, duration, step=1.0 / fs, mode="open", noise=False)
     sx, ss = NOISE[noise] if isinstance(noise, str) else noise
+    shape_misfit = None
+    if "hysteresis_shape" in chosen:
+        plant, shape_misfit = _visible_shape(plant, base, res, {"x": sx, "us": ss})
+        shape = dict(chosen["hysteresis_shape"])
+        shape["extra_weight"] *= shape_misfit["factor"]
+        chosen["hysteresis_shape"] = shape
+        res = simulate(plant, sig, duration, step=1.0 / fs, mode="open", noise=False)
     x = res["x"] + sx * rng.standard_normal(t.size)
     us = res["us"] + ss * rng.standard_normal(t.size)
     if "hum" in chosen:
@@ -237,8 +249,58 @@ def make_case(seed, effects=(), noise="mid", kinds=None, fs=5000.0, channels=("x
         us = us + chosen["sensor_drift"]["rate"] * t
     truth = {"effects": sorted(chosen), "parameters": chosen, "noise": {"x": sx, "us": ss},
              "programme": desc, "seed": seed, "fs": fs, "duration_s": duration,
-             "x_clean": res["x"], "us_clean": res["us"], "plant": plant}
+             "x_clean": res["x"], "us_clean": res["us"], "plant": plant, "shape_misfit": shape_misfit}
     return Case(t, u, x if "x" in channels else None, us if "us" in channels else None, truth)
+
+
+def pi9_misfit(ua, hyst, nominal_thresholds, noise_stroke):
+    """How far the loop ``hyst`` (the model's hysteresis section) lies from the best PI on the
+    nominal thresholds: rms of ``x_h - (a + sum_i w_i P_i)`` over the record, the ``w_i >= 0``
+    fitted by NNLS on the same stack voltage ``ua`` [V], in units of ``noise_stroke`` [um]."""
+    from scipy.optimize import nnls
+
+    from ..core.hysteresis import play_scan
+
+    v = np.asarray(ua, float) / hyst["u_norm"]
+    x_h = hyst["scale"] * (play_scan(v, hyst["thresholds"]) @ np.asarray(hyst["weights"], float))
+    basis = np.column_stack([play_scan(v, nominal_thresholds), np.ones_like(v), -np.ones_like(v)])
+    coef, _ = nnls(basis, x_h)
+    return float(np.sqrt(np.mean((x_h - basis @ coef) ** 2))) / noise_stroke
+
+
+def _visible_shape(plant, base, res, noise):
+    """Raise the added operators' weights until the finer loop is visible beyond what a
+    recalibration absorbs (the rig's rule, :mod:`piezo_fmu.rig.caseset`): the best PI on the
+    nominal thresholds misses it by :data:`SHAPE_VISIBLE` noise rms, the noise of the best channel
+    expressed as hysteresis stroke (channel noise over the channel's gain from stroke). Returns
+    the plant and ``{"misfit": ..., "factor": ...}``; the stack voltage does not depend on the
+    loop (open loop), so one simulation serves every factor."""
+    from ..core.hysteresis import play_scan
+
+    h = plant["hysteresis"]
+    r, w = np.asarray(h["thresholds"], float), np.asarray(h["weights"], float)
+    r_nom = np.asarray(base["hysteresis"]["thresholds"], float)
+    extra = ~np.isin(r, r_nom)
+    x_h = h["scale"] * (play_scan(np.asarray(res["ua"], float) / h["u_norm"], r) @ w)
+    x_h = x_h - np.mean(x_h)
+    stroke_noise = []
+    for c in ("x", "us"):
+        y = res[c] - np.mean(res[c])
+        gain = abs(float(y @ x_h) / max(float(x_h @ x_h), 1e-300))
+        if gain > 0:
+            stroke_noise.append(noise[c] / gain)
+    sigma = min(stroke_noise)
+    factor = 1.0
+    while True:
+        ww = np.where(extra, w * factor, w)
+        hh = {"u_norm": h["u_norm"], "scale": h["scale"], "thresholds": r, "weights": ww}
+        misfit = pi9_misfit(res["ua"], hh, r_nom, sigma)
+        if misfit >= SHAPE_VISIBLE or factor >= SHAPE_MAX_FACTOR:
+            break
+        factor = min(factor * 1.5, SHAPE_MAX_FACTOR)
+    out = plant.copy()
+    out.set("hysteresis", "weights", [float(v) for v in ww], SRC)
+    return out.check(), {"misfit": round(misfit, 3), "factor": round(factor, 3)}
 
 
 def write_recording(path, case: Case, force=False):
