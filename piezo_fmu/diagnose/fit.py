@@ -201,11 +201,17 @@ class Fitter:
         self.restart = {}        # name -> value a fit restarts from when it starts at a limit
         self.noise = {}          # channel -> noise level (set once the baseline is known)
         self.ordinary = ["tau"]  # ordinary nonlinear parameters fitted with every structure
-        self.deadline = math.inf  # perf_counter() time after which no new search is started
+        self.deadline = math.inf  # process_time() [CPU s] after which no new search is started
         self.n_eval = 0
         self.n_eff = 1000.0      # effective sample size of the current residual (set by the recalibration)
 
     # -- bounds --------------------------------------------------------------------------------
+    def out_of_time(self) -> bool:
+        """True once the search budget is spent. The budget is CPU time of this process (the
+        analysis is single-threaded), not wall time: the same recording gets the same search on an
+        idle machine and on one busy with other jobs."""
+        return time.process_time() > self.deadline
+
     def bounds(self, name, p=None):
         if name in self.limits:
             return self.limits[name]

@@ -24,7 +24,6 @@ effective sample size.
 from __future__ import annotations
 
 import math
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -99,11 +98,11 @@ def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
     step("recalibrating the amplifier's order")
     changed |= _order(fitter, rc, struct, sat)
     if not rc.report.get("first_mode", {}).get("identified") and (
-            time.perf_counter() < fitter.deadline or "first_mode" not in rc.report):
+            not fitter.out_of_time() or "first_mode" not in rc.report):
         step("recalibrating the first mode of the mechanics and what the sensor channel follows")
         changed |= _mode(fitter, rc, struct, sat)
     if not rc.report.get("sampling_lags", {}).get("identified") and (
-            time.perf_counter() < fitter.deadline or "sampling_lags" not in rc.report):
+            not fitter.out_of_time() or "sampling_lags" not in rc.report):
         step("recalibrating the channels' sampling lags")
         changed |= _lags(fitter, rc, struct, sat)
     if changed:

@@ -21,7 +21,6 @@ it is a finding (``final.effects``, model.toml); below, a *candidate* with its r
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
@@ -34,12 +33,15 @@ __all__ = ["ACCEPT", "CONFIDENT", "confidence", "full_residuals", "noise_levels"
 
 CONFIDENT = 0.5              # findings at or above this confidence are named; below: candidates
 # a finer loop is missing loop shape when it explains most of what is left (this share of the
-# structured residual on its best channel) by more than the noise (removed structured rms, in noise
-# rms); one that only trims a residual whose larger part stays is approximating a loop of another
-# kind (another hysteresis family, other thresholds): an ordinary difference, taken into the
-# recalibration, not named
+# structured residual on its best channel) by at least twice the noise (removed structured rms, in
+# noise rms); one that only trims a residual whose larger part stays, or removes less, is
+# approximating a loop of another kind (another hysteresis family, other thresholds): an ordinary
+# difference, taken into the recalibration, not named. Twice: a device's own loop of another family
+# lies up to ~1.5 noise rms from the best nine-operator PI (the rig's clean devices do), a loop
+# shape worth a name 3 or more (both generators' present shapes); at 1.0 a Bouc-Wen device with a
+# current limit got a shape named from 1.04 x the noise (rig-023)
 SHAPE_EXPLAINED = 0.7
-SHAPE_REMOVED = 1.0
+SHAPE_REMOVED = 2.0
 
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
@@ -237,7 +239,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     sets_cur, _ = residual_sets(fitter, current)
     budget_note = None
     for rnd in range(max_rounds):
-        if time.perf_counter() > fitter.deadline:
+        if fitter.out_of_time():
             budget_note = f"time budget reached after {rnd} round(s): no further candidates searched"
             step(budget_note)
             break
@@ -285,7 +287,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             # (down the screening order) as long as nothing tried so far passed
             if gain <= 0 or (i >= 1 and gain < 0.4 * top and any(t["passed"] for t in tried)):
                 continue
-            if i >= 1 and time.perf_counter() > fitter.deadline:
+            if i >= 1 and fitter.out_of_time():
                 budget_note = "time budget reached: the weaker screened candidates were not fitted"
                 break
             step(f"round {rnd + 1}: fitting {name} (with the lag and every coupled parameter)")
@@ -370,7 +372,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         # settle every parameter with the new mechanism in before the next round compares against it
         current = fitter.fit(current, struct, max_nfev=15).params
         if revisit is not None and (best["name"] in FAST or len(findings) == 1) \
-                and time.perf_counter() < fitter.deadline:
+                and not fitter.out_of_time():
             # a dominant residual may have hidden an ordinary item: after the first finding and
             # after fast ones (slow mechanisms do not hide lags or modes once a finding is in)
             again = revisit(current, struct)
