@@ -5,8 +5,11 @@ chirps, in random order), a plant (the nominal model with its ordinary parameter
 real specimen differs from the data sheet, plus zero or more mechanisms of the catalogue switched
 on with random parameter values; ``hysteresis_shape`` adds play operators between the nominal
 ones, their weights raised until the best PI on the nominal thresholds misses the finer loop by
-``SHAPE_VISIBLE`` noise rms: a shape a recalibration absorbs is no shape), and measurement noise on the displacement and the sensor voltage. The plant is run by the core (``simulate``, open loop, command held over each sample),
-exactly the physics the FMUs run. The truth (which mechanisms, which values) is returned separately
+``SHAPE_VISIBLE`` noise rms: a shape a recalibration absorbs is no shape; every other mechanism
+raised within its range until it changes the outputs by ``VISIBLE`` noise rms beyond a channel
+gain and offset, the rule of the independent rig), and measurement noise on the displacement and
+the sensor voltage. The plant is run by the core (``simulate``, open loop, command held over each
+sample), exactly the physics the FMUs run. The truth (which mechanisms, which values) is returned separately
 and never written into the recording.
 
 Mechanisms the catalogue does not know can be added as negative controls: ``hum`` (a mains-like
@@ -50,6 +53,9 @@ SRC = "synthetic plant (piezo_fmu.diagnose.synth)"
 # a hysteresis_shape is made visible: the best PI on the nominal thresholds misses the finer loop by
 # at least this many noise rms (the rig's VISIBLE), the added weights raised by up to this factor
 SHAPE_VISIBLE = 3.0
+# every other mechanism is raised (within its physical range) until what it changes beyond a
+# channel's gain and offset is this many noise rms over the record (the rig's VISIBLE)
+VISIBLE = 3.0
 SHAPE_MAX_FACTOR = 20.0
 
 
@@ -233,13 +239,19 @@ def make_case(seed, effects=(), noise="mid", kinds=None, fs=5000.0, channels=("x
     sig = Signal("table", t=t, values=u, column="u")
     res = simulate(plant, sig, duration, step=1.0 / fs, mode="open", noise=False)
     sx, ss = NOISE[noise] if isinstance(noise, str) else noise
+    sigma = {"x": sx, "us": ss}
     shape_misfit = None
+    visibility = {}
     if "hysteresis_shape" in chosen:
-        plant, shape_misfit = _visible_shape(plant, base, res, {"x": sx, "us": ss})
+        plant, shape_misfit = _visible_shape(plant, base, res, sigma)
         shape = dict(chosen["hysteresis_shape"])
         shape["extra_weight"] *= shape_misfit["factor"]
         chosen["hysteresis_shape"] = shape
         res = simulate(plant, sig, duration, step=1.0 / fs, mode="open", noise=False)
+        visibility["hysteresis_shape"] = shape_misfit["misfit"]
+    for name in [e for e in EFFECTS if e in chosen and e in SECTION_OF]:
+        plant, res, chosen[name], visibility[name] = _visible(name, plant, base, res, chosen[name], sig,
+                                                              duration, fs, sigma, channels)
     x = res["x"] + sx * rng.standard_normal(t.size)
     us = res["us"] + ss * rng.standard_normal(t.size)
     if "hum" in chosen:
@@ -249,8 +261,75 @@ def make_case(seed, effects=(), noise="mid", kinds=None, fs=5000.0, channels=("x
         us = us + chosen["sensor_drift"]["rate"] * t
     truth = {"effects": sorted(chosen), "parameters": chosen, "noise": {"x": sx, "us": ss},
              "programme": desc, "seed": seed, "fs": fs, "duration_s": duration,
-             "x_clean": res["x"], "us_clean": res["us"], "plant": plant, "shape_misfit": shape_misfit}
+             "x_clean": res["x"], "us_clean": res["us"], "plant": plant, "shape_misfit": shape_misfit,
+             "visibility": visibility}
     return Case(t, u, x if "x" in channels else None, us if "us" in channels else None, truth)
+
+
+def visibility_beyond_affine(with_e, without_e, sigma, channels) -> float:
+    """What a mechanism changes that a channel's gain and offset cannot absorb: per recorded
+    channel, the rms of ``d = y(with) - y(without)`` after the best fit ``a + b y(without)`` is
+    removed from it, over the channel's noise rms; the largest over the channels (the rig's
+    ``visibility_beyond_affine``)."""
+    best = 0.0
+    for c in channels:
+        y0 = np.asarray(without_e[c], float)
+        d = np.asarray(with_e[c], float) - y0
+        a = np.column_stack([np.ones_like(y0), y0])
+        coef, *_ = np.linalg.lstsq(a, d, rcond=None)
+        best = max(best, float(np.sqrt(np.mean((d - a @ coef) ** 2))) / sigma[c])
+    return best
+
+
+def _stronger(name, par, fs):
+    """One step up in size for a mechanism that is not visible yet; ``None`` at the end of its
+    physical range."""
+    q = dict(par)
+    if name == "creep":
+        q["gains"] = [g * 1.5 for g in par["gains"]]
+        return q if sum(q["gains"]) <= 0.5 else None
+    if name == "sensor_leakage":
+        q["tau_leak"] = par["tau_leak"] / 1.5
+        return q if q["tau_leak"] >= 0.1 else None
+    if name == "amplifier_current_limit":
+        q["I_max"] = par["I_max"] / 1.5
+        return q if q["I_max"] >= 0.001 else None
+    if name == "time_delay":
+        n = round(par["delay"] * fs)
+        q["delay"] = float(max(n + 1, round(1.5 * n))) / fs
+        return q if q["delay"] * fs <= 30 else None
+    if name == "extra_resonance":
+        # lighter damping down to the range's 0.01, then lower (the amplifier's lag passes more)
+        if par["zeta"] > 0.0101:
+            q["zeta"] = max(par["zeta"] / 1.5, 0.01)
+            return q
+        q["f_n"] = par["f_n"] / 1.25
+        return q if q["f_n"] >= 150.0 else None
+    if name == "thermal_drift":
+        q["rate"], q["curvature"] = 1.5 * par["rate"], 1.5 * par["curvature"]
+        return q if abs(q["rate"]) <= 0.3 else None
+    raise ValueError(name)
+
+
+def _visible(name, plant, base, res, par, sig, duration, fs, sigma, channels):
+    """Raise mechanism ``name`` until it is visible beyond a channel's gain and offset by
+    :data:`VISIBLE` noise rms (the rig's rule), within its physical range. Returns the plant, its
+    run, the mechanism's parameters and its visibility."""
+    off = plant.copy()
+    for key in par:
+        off.set(SECTION_OF[name], key, base[SECTION_OF[name]][key], "off")
+    res_off = simulate(off, sig, duration, step=1.0 / fs, mode="open", noise=False)
+    while True:
+        vis = visibility_beyond_affine(res, res_off, sigma, channels)
+        q = _stronger(name, par, fs) if vis < VISIBLE else None
+        if q is None:
+            return plant, res, par, round(vis, 3)
+        par = q
+        plant = plant.copy()
+        for key, value in par.items():
+            plant.set(SECTION_OF[name], key, value, SRC)
+        plant = plant.check()
+        res = simulate(plant, sig, duration, step=1.0 / fs, mode="open", noise=False)
 
 
 def pi9_misfit(ua, hyst, nominal_thresholds, noise_stroke):
