@@ -446,3 +446,18 @@ def test_fmus_rebuilt_from_the_diagnosed_model_reproduce_the_recording(creep_run
     ho = fit["heldout"] == 1
     assert np.sqrt(np.mean((x_co - fit["x"])[ho] ** 2)) < 1.05 * d["final"]["rmse"]["x"] + 0.1 * noise["x"]
     shutil.rmtree(fmus, ignore_errors=True)
+
+
+def test_cancelling_weights_still_make_a_valid_model_file():
+    # a poorly conditioned fit (rig-083: 1846 samples) gave +761 and -761 um on the first two
+    # operators; rounded to 8 digits their partial sum was 0 and writing model.toml crashed
+    from piezo_fmu.diagnose.model_io import model_from_params, params_from_model
+    from piezo_fmu.model import load_model
+
+    base = load_model()
+    p = params_from_model(base, 1e-3)
+    p.weights = np.array([761.659491, -761.659479, 0.0, 23.87, -23.22, 236.58, -22.05, -40.23, -106.71])
+    m = model_from_params(base, p, {}, dt=1e-3).check()
+    w = np.asarray(m["hysteresis"]["weights"], float)
+    assert np.all(np.cumsum(w) > 0)
+    assert m["hysteresis"]["scale"] * w[0] == pytest.approx(761.659491, rel=1e-9)

@@ -192,7 +192,9 @@ def model_from_params(base, p: Params, sources: dict, dt=None):
     put("hysteresis", "u_norm", _num(p.u_norm), "diagnose: input normalisation, the recording's stack-voltage span")
     put("hysteresis", "thresholds", [_num(v) for v in p.thresholds], "diagnose: the nominal thresholds on the recording's span")
     put("hysteresis", "scale", _num(total), fitted + " (sum of the weights: stroke per PI unit)")
-    ws = [_num(v) for v in (w / total)]
+    # full precision: weights of a poorly conditioned fit can cancel (+761, -761 um) and leave a
+    # partial sum of 1e-7 that rounding to 8 digits would make 0 (not invertible; rig-083)
+    ws = [float(v) for v in (w / total)]
     put("hysteresis", "weights", ws, fitted + " (bounded least squares, every partial sum > 0)")
     put("hysteresis", "saturation", _num(p.y_sat) if math.isfinite(p.y_sat) else math.inf,
         "diagnose: nominal saturation, scaled with the recalibrated stroke")
