@@ -13,12 +13,22 @@ home-made pool::
   (one single-threaded worker process per core: the simulations hold the GIL); with one, the
   existing cluster, whose workers must have piezo-fmu installed. ``workers=0`` runs everything
   in this process, in order, without dask (for debugging and for the serial reference).
-* **Batching.** A dask task costs a few milliseconds of scheduling and transfer; a compiled
-  closed-loop run can take less. Items are therefore sent in batches sized from the measured time
-  per item (median, so a worker's first call that compiles numba does not count) to take about
-  ``target_task_s`` each, while a few batches per worker are kept in flight and the last ones
-  shrink so that all workers finish together. Batches are formed in item order as workers ask,
-  so results never depend on the number of workers: only on ``fn`` and the item.
+* **Batching.** A dask task costs a few milliseconds of scheduling and transfer (measured on a
+  shared 2-core machine: 3-5 ms of CPU in the scheduler's process and about 3 ms in the worker);
+  a compiled closed-loop run can take less. Items are therefore sent in batches sized from the
+  measured time per item (median, so a worker's first call that compiles numba does not count)
+  to take about ``target_task_s`` each, while a few batches per worker are kept in flight and the
+  last ones shrink so that all workers finish together, but not below ``TAIL_FRACTION`` of
+  ``target_task_s`` and leaving no smaller remainder (a tail of one-item tasks spent as much CPU
+  on dask as on the items). Batches are formed in item order as workers ask, so results never
+  depend on the number of workers: only on ``fn`` and the item.
+* **Quiet local workers.** The local cluster runs with :data:`LOCAL_CLUSTER_CONFIG`: no
+  statistical profiler (it samples each worker's stack every 10 ms for a dashboard that is not
+  started) and slower housekeeping (event-loop watchdog, system and memory monitors). Idle, a
+  2-worker cluster with dask's defaults burned about 50 ms of CPU per second in the scheduler's
+  process and 35-40 ms per worker; with these settings about 10 and 3 ms (same machine). When
+  the tasks keep every core busy, that CPU is taken from them. A setting the user made (dask
+  config file, ``DASK_*`` variable: a value other than dask's default) is kept.
 * **Worker loss.** Tasks are pure (same function and items: same result), so when a worker dies
   the scheduler runs its tasks again elsewhere. A batch that keeps killing workers (dask gives up
   after ``distributed.scheduler.allowed-failures`` deaths) is split into single items; an item
@@ -39,7 +49,19 @@ from collections import deque
 
 from .errors import UserError
 
-__all__ = ["Engine", "TaskFailed", "local_workers", "map_as_completed"]
+__all__ = ["LOCAL_CLUSTER_CONFIG", "Engine", "TaskFailed", "local_workers", "map_as_completed"]
+
+#: dask settings of the local cluster an :class:`Engine` starts (its scheduler, nannies and
+#: workers), instead of dask's defaults given in the comments: housekeeping that serves the
+#: dashboard or reacts within milliseconds costs CPU the tasks need.
+LOCAL_CLUSTER_CONFIG = {
+    "distributed.worker.profile.enabled": False,             # True: stack samples every 10 ms
+    "distributed.admin.tick.interval": "1s",                 # 20ms: event-loop watchdog
+    "distributed.admin.system-monitor.interval": "1s",       # 500ms: CPU/memory/network metrics
+    "distributed.worker.memory.monitor-interval": "500ms",   # 100ms: the nanny's memory limit check
+}
+TAIL_FRACTION = 0.1     # the smallest batch: this fraction of target_task_s
+WORKERS_REFRESH_S = 1.0  # how often map asks the scheduler how many workers there are [s]
 
 
 class TaskFailed(Exception):
@@ -53,6 +75,25 @@ def local_workers() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:          # not on Linux
         return max(1, os.cpu_count() or 1)
+
+
+def local_cluster_config() -> dict:
+    """:data:`LOCAL_CLUSTER_CONFIG` without the keys the user configured (dask config file,
+    ``DASK_*`` environment variable or :func:`dask.config.set`: a value other than dask's
+    default), which are kept."""
+    import dask
+    import distributed  # noqa: F401 - registers its defaults (importing inside config.set loses them)
+
+    defaults = dask.config.merge(*dask.config.defaults)
+    out = {}
+    for key, value in LOCAL_CLUSTER_CONFIG.items():
+        try:
+            if dask.config.get(key) != dask.config.get(key, config=defaults):
+                continue
+        except KeyError:        # a key this version of distributed does not know: harmless
+            pass
+        out[key] = value
+    return out
 
 
 def _call(fn, context, item, has_context):
@@ -139,10 +180,13 @@ class Engine:
                     raise UserError(f"--workers {workers}: only {n} worker(s) joined {scheduler} "
                                     f"within {timeout:g} s") from None
         else:
+            import dask
+
             n = workers or local_workers()
-            self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                                        dashboard_address=None, silence_logs=logging.ERROR)
-            self.client = Client(self.cluster, set_as_default=False)
+            with dask.config.set(local_cluster_config()):     # read as the servers start
+                self.cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                            dashboard_address=None, silence_logs=logging.ERROR)
+                self.client = Client(self.cluster, set_as_default=False)
 
     # -- life cycle ----------------------------------------------------------------------------
     def __enter__(self):
@@ -217,7 +261,8 @@ class Engine:
             yielded as a :class:`TaskFailed` result and the other items go on.
         target_task_s : float
             Aimed wall time of one task [s]: longer amortises dask's per-task cost (a few ms),
-            shorter loses less work when a worker dies and balances better.
+            shorter loses less work when a worker dies and balances better. The last batches
+            shrink to balance the workers, down to ``TAIL_FRACTION * target_task_s``.
         max_batch : int
             Most items in one task.
         """
@@ -259,13 +304,26 @@ class Engine:
         ac = as_completed(loop=client.loop)
         pending = {}                        # key -> (future, positions)
 
+        workers_seen = [0, -math.inf]       # workers, time.monotonic() when asked
+
+        def n_workers():
+            # the scheduler's answer lists every worker: asked at most every WORKERS_REFRESH_S
+            now = time.monotonic()
+            if now - workers_seen[1] >= WORKERS_REFRESH_S:
+                workers_seen[:] = [max(1, self.n_workers), now]
+            return workers_seen[0]
+
         def batch_size(n_workers):
             if not times:
                 return 1
             per_item = max(statistics.median(times), 1e-6)
             size = int(target_task_s / per_item) or 1
-            tail = math.ceil(len(todo) / (2 * n_workers))      # the last batches shrink
-            return max(1, min(size, max_batch, tail))
+            smallest = int(TAIL_FRACTION * target_task_s / per_item) or 1
+            tail = max(math.ceil(len(todo) / (2 * n_workers)), smallest)    # the last batches shrink
+            size = max(1, min(size, max_batch, tail))
+            if len(todo) - size < smallest:             # no smaller remainder after this batch
+                size = min(len(todo), max_batch)
+            return size
 
         def submit(positions):
             batch = [(p, items[p]) for p in positions]
@@ -276,12 +334,12 @@ class Engine:
             ac.add(fut)
 
         def fill():
-            n_workers = max(1, self.n_workers)
-            while (todo or singles) and ac.count() < 2 * n_workers:
+            n = n_workers()
+            while (todo or singles) and ac.count() < 2 * n:
                 if singles:
                     submit([singles.popleft()])
                     continue
-                size = batch_size(n_workers)
+                size = batch_size(n)
                 submit([todo.popleft() for _ in range(min(size, len(todo)))])
 
         try:
@@ -311,7 +369,7 @@ class Engine:
                     else:
                         raise exc
                 if progress is not None:
-                    progress(done / total, f"{done}/{total}, {self.n_workers} worker(s)")
+                    progress(done / total, f"{done}/{total}, {n_workers()} worker(s)")
                 fill()
         finally:
             if pending:

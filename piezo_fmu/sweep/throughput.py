@@ -18,6 +18,15 @@ written (the store and the report are not the engine). Figures:
   second process. On a shared machine it is below 1 whatever the engine does, and
   ``sweep_engine_efficiency = sweep_scaling_efficiency / sweep_machine_scaling_efficiency`` is
   the engine's own share.
+
+Each set-up is measured alone: started, warmed, timed ``reps`` times (the best counts), closed,
+before the next one starts (local cluster of 1 worker, 1 plain process, cluster of 2, 2
+processes). An idle local cluster is not free: its scheduler and nannies live in this process
+and, like its workers, wake up periodically (with dask's defaults about 50 ms of CPU per second
+in this process and 35-40 ms per worker), which a user's sweep, running one cluster, does not
+pay. Measuring in turns with all set-ups alive would charge that to whichever set-up is timed,
+most to the one that uses every core. The price: the two sizes are timed some seconds apart,
+so the machine's drift enters their ratio; the best of ``reps`` passes is kept against it.
 """
 from __future__ import annotations
 
@@ -51,10 +60,9 @@ SIZES = {"full": {"runs": 400, "periods": 3, "kernels": "numba", "reps": 3},
 
 def measure_throughput(size="full", workers=(1, 2), say=None) -> dict:
     """The figures of the module docstring (``size``: full or tiny; ``workers``: the two sizes
-    compared). All four set-ups (two local clusters, two process pools) are started and warmed
-    first, then measured in turns, ``reps`` rounds, the best of each: a ratio of two measurements
-    taken a minute apart would carry the shared machine's drift."""
-    import contextlib
+    compared). Each set-up runs alone (module docstring): a local cluster of ``workers[0]``
+    worker(s), as many plain processes, then the same with ``workers[-1]``; each is warmed (numba
+    compiled) before the clock starts and timed ``reps`` times, the best pass kept."""
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
@@ -67,24 +75,20 @@ def measure_throughput(size="full", workers=(1, 2), say=None) -> dict:
     spec = loads_spec(SPEC.format(count=cfg["runs"], periods=cfg["periods"], kernels=cfg["kernels"]))
     context = RunContext(spec)
     n_runs = spec.n_runs
+    reps = cfg["reps"]
     out = {"sweep_runs": n_runs, "sweep_kernels": cfg["kernels"], "sweep_workers": list(workers)}
     best = {}
-    with contextlib.ExitStack() as stack:
-        say(f"sweep throughput: local clusters of {' and '.join(map(str, workers))} worker(s) and as "
-            "many plain processes, warming")
-        engines = {n: stack.enter_context(Engine(workers=n)) for n in workers}
-        pools = {n: stack.enter_context(ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"),
-                                                            initializer=warm, initargs=(context,)))
-                 for n in workers}
-        for n in workers:
-            engines[n].warm(warm, context)
-            list(pools[n].map(_runs, [context] * n, [[0]] * n))      # every process started, warm
-        for r in range(cfg["reps"]):
-            say(f"sweep throughput: {n_runs} runs on each set-up, round {r + 1} of {cfg['reps']}")
-            for n in workers:
-                best[("dask", n)] = min(best.get(("dask", n), (float("inf"),)), _on_engine(engines[n], context))
-                best[("plain", n)] = min(best.get(("plain", n), float("inf")),
-                                         _on_pool(pools[n], context, n_runs, n))
+    for n in workers:
+        say(f"sweep throughput: local cluster of {n} worker(s) alone, warming, then {reps} pass(es) "
+            f"of {n_runs} runs")
+        with Engine(workers=n) as engine:
+            engine.warm(warm, context)
+            best[("dask", n)] = min(_on_engine(engine, context) for _ in range(reps))
+        say(f"sweep throughput: {n} plain process(es) alone, warming, then {reps} pass(es)")
+        with ProcessPoolExecutor(n, mp_context=mp.get_context("spawn"), initializer=warm,
+                                 initargs=(context,)) as pool:
+            list(pool.map(_runs, [context] * n, [[0]] * n))      # every process started, warm
+            best[("plain", n)] = min(_on_pool(pool, context, n_runs, n) for _ in range(reps))
     a, b = workers[0], workers[-1]
     for n in workers:
         out[f"sweep_runs_per_s_{n}"] = n_runs / best[("dask", n)][0]
@@ -102,15 +106,18 @@ def measure_throughput(size="full", workers=(1, 2), say=None) -> dict:
 
 def _on_engine(engine, context):
     """``(wall [s], seconds inside the runs [s], tasks)`` of one pass over all runs."""
+    from ..parallel import TaskFailed
     from .runner import run_task
 
     tasks0 = engine.tasks
     t0 = time.perf_counter()
-    rows = [row for _, row in engine.map(run_task, range(context.spec.n_runs), context=context)]
+    rows = [row for _, row in engine.map(run_task, range(context.spec.n_runs), context=context,
+                                         errors="return")]       # as piezo_fmu.sweep.sweep
     wall = time.perf_counter() - t0
-    bad = [r for r in rows if r["status"] != "ok"]
+    bad = [str(r) if isinstance(r, TaskFailed) else r["error"] for r in rows
+           if isinstance(r, TaskFailed) or r["status"] != "ok"]
     if bad:
-        raise RuntimeError(f"sweep throughput: a run failed: {bad[0]['error']}")
+        raise RuntimeError(f"sweep throughput: a run failed: {bad[0]}")
     return wall, sum(r["seconds"] for r in rows), engine.tasks - tasks0
 
 
