@@ -3,6 +3,60 @@ of one FMI call from our master and from a C host (main thread and a foreign thr
 loop stepped from C and by libcosim driven from C, and the ``cosim`` command as a user sees it.
 The C hosts are the repository's (``tests/host``), compiled here; without a compiler, a source
 checkout or libcosimpy those keys are ``None``.
+
+libcosim: where the time goes
+-----------------------------
+``loop_libcosim_us_per_step`` / ``loop_libcosim_floor_us_per_step`` run ``libcosim_run`` on the
+SSD's fixed-step algorithm with ``numWorkerThreads="0"`` (:func:`libcosim_ssp`); the
+``*_pool_*`` keys the same systems with libcosim's default worker pool (``--fixed-step``, what
+``cosim_ssp_fixed_step_execution_create`` and libcosimpy's ``from_ssp_file(step_size=..)`` give).
+Measured 2026-11-22 on the 2-core VM while three CPU-bound processes of other jobs ran (load 5-6),
+5000 steps of 1e-4 s, best of 3 (median), wall us per communication step, taken in turns::
+
+                                        3 pass-through FMUs    PiezoSystem (python engine)
+    default pool (1 worker on 2 cores)    16.5 (26)  cpu 16.4     42 (105)  cpu 28
+    numWorkerThreads="0"                   3.7 (5.4) cpu 3.3      10.7 (25) cpu 9.6
+    our master, same run                  11.7 (13)               15.2 (17)
+
+(the bench's own run a minute later: 4.4 / 13.7 us at zero workers, 98 / 45 us with the pool,
+our master 7.8 / 13.4 us: x1.0 our master, was x3.4; last session's 68 us floor was the pool.)
+
+Why. libcosim 0.11.2 (the ``libcosimc.so`` of libcosimpy 0.0.6) steps in
+``fixed_step_algorithm::impl::do_step`` (``src/cosim/algorithm/fixed_step_algorithm.cpp``): each
+FMU's step (set inputs, ``fmi2DoStep``, get outputs: ``slave_simulator::do_step``) is submitted as
+a ``std::function`` task to ``utility::thread_pool`` (``src/cosim/utility/thread_pool.hpp``: one
+mutex, a queue, two condition variables), the calling thread blocks in
+``wait_for_tasks_to_finish`` and then transfers the connections itself. The pool has
+``min(numWorkerThreads, hardware_concurrency() - 1)`` workers (the ``impl`` constructor,
+``max_threads_``): one on this machine, so no parallelism at all, only a wake-up of the worker
+and of the caller every step (futex calls and context switches, in a VM whose cores are shared,
+plus the scheduler's latency): ~13 us of CPU and 13-95 us of wall time per step, independent of
+the FMUs (pinning the process to one CPU with ``taskset`` does not help: 19 against 16.5 us).
+More cores would not help these FMUs either: the three share the process's one embedded Python
+and its GIL (``fmu_src/runtime/fmi2_bridge.c``), so their steps cannot overlap. With zero workers
+``thread_pool::submit`` runs the task on the calling thread (``threads_.empty()``) and a step is
+a plain loop.
+
+libcosimc offers no worker count: ``cosim_fixed_step_algorithm_create(stepSize)``,
+``cosim_execution_create`` and ``cosim_ssp_fixed_step_execution_create`` all build
+``fixed_step_algorithm(step)`` with the default pool (libcosimc ``src/cosim.cpp``). The one way from
+C is the SSD's OSP annotation ``<osp:FixedStepAlgorithm baseStepSize=".." numWorkerThreads="0"/>``
+(``src/cosim/ssp/ssp_parser.cpp``; declared in libcosim's ``OSPAnnotations.xsd``), which
+``cosim_ssp_execution_create`` uses - the configuration a libcosim user sets for this system.
+The results do not change: ``tests/test_runtime.py`` checks the zero-worker run from C against
+libcosimpy's run with the default pool.
+
+The rest is small (same measurements):
+``cosim_execution_step(exec, N)`` against ``simulate_until``: the same within the noise (real time
+is off by default; ``real_time_timer::sleep`` then hashes the config and reads the clock,
+``src/cosim/timer.cpp``); the time-series observer of 3-4 variables ~0.9 us of CPU per step (a
+mutex and a ``std::map`` insert per variable, ``time_series_observer.cpp`` ``observe``; no
+observer saves that, a last-value observer costs about as much); the FMUs loaded with
+``cosim_local_slave_create`` and connected from C instead of through the SSP: the same algorithm,
+the same cost per step. At zero workers the ring's ~3.3 us of CPU are ~1-1.7 us for the three
+``fmi2DoStep`` calls into Python (``call_c_dostep_us``), ~0.9 us the observer and ~1 us libcosim's
+bookkeeping (a ``std::function`` per FMU, a ``std::stringstream`` and an ``unordered_set`` built in
+every ``do_step``, ``unordered_map`` look-ups per connection).
 """
 from __future__ import annotations
 
@@ -14,7 +68,7 @@ import tempfile
 import time
 from pathlib import Path
 
-__all__ = ["HOST_SRC", "RUNTIME_KEYS", "runtime_figures"]
+__all__ = ["HOST_SRC", "RUNTIME_KEYS", "libcosim_ssp", "runtime_figures"]
 
 # the runtime's figures (item 7); the C and libcosim ones are None without a compiler, the
 # repository's tests/host or libcosimpy
@@ -23,6 +77,7 @@ RUNTIME_KEYS = ("call_master_dostep_us", "call_master_setget_us", "call_master_t
                 "call_c_thread_dostep_us", "call_c_thread_setget_us", "loop_c_us_per_step",
                 "loop_c_python_us_per_step", "loop_c_to_master", "loop_c_python_to_master",
                 "loop_libcosim_us_per_step", "loop_libcosim_to_master", "loop_libcosim_floor_us_per_step",
+                "loop_libcosim_pool_us_per_step", "loop_libcosim_floor_pool_us_per_step",
                 "cosim_command_us_per_step", "cosim_command_to_loop")
 HOST_SRC = Path(__file__).resolve().parents[1] / "tests" / "host"    # the C hosts (a source checkout)
 H = 1e-4
@@ -128,16 +183,50 @@ def _c_host_figures(fmus, cfg, workdir, engine):
 
 RING_SSD = """<?xml version="1.0" encoding="UTF-8"?>
 <ssd:SystemStructureDescription xmlns:ssc="http://ssp-standard.org/SSP1/SystemStructureCommon"
-    xmlns:ssd="http://ssp-standard.org/SSP1/SystemStructureDescription" version="1.0" name="Ring">
+    xmlns:ssd="http://ssp-standard.org/SSP1/SystemStructureDescription"
+    xmlns:osp="http://opensimulationplatform.com/SSP/OSPAnnotations" version="1.0" name="Ring">
   <ssd:System name="Ring"><ssd:Elements>{components}</ssd:Elements><ssd:Connections>{connections}
   </ssd:Connections></ssd:System>
+  <ssd:DefaultExperiment startTime="0.0"><ssd:Annotations>
+    <ssc:Annotation type="com.opensimulationplatform"><osp:Algorithm>
+      <osp:FixedStepAlgorithm baseStepSize="{step}" numWorkerThreads="{workers}"/>
+    </osp:Algorithm></ssc:Annotation>
+  </ssd:Annotations></ssd:DefaultExperiment>
 </ssd:SystemStructureDescription>
 """
 
 
+def libcosim_ssp(ssp, out, workers=0) -> Path:
+    """A copy ``out`` of the SSP archive ``ssp`` whose fixed-step algorithm (the OSP annotation
+    ``osp:FixedStepAlgorithm``) has ``numWorkerThreads="workers"``: libcosim's worker pool for the
+    run (0: the FMUs are stepped on the calling thread; see the module docstring)."""
+    import xml.etree.ElementTree as ET
+    import zipfile
+
+    from .ssp import NS
+
+    with zipfile.ZipFile(ssp) as src, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as dst:
+        for item in src.infolist():
+            data = src.read(item)
+            if item.filename == "SystemStructure.ssd":
+                root = ET.fromstring(data)
+                algorithms = root.findall(".//osp:FixedStepAlgorithm", NS)
+                if not algorithms:
+                    raise ValueError(f"{ssp}: no osp:FixedStepAlgorithm annotation in the SSD")
+                for alg in algorithms:
+                    alg.set("numWorkerThreads", str(int(workers)))
+                data = ET.tostring(root, encoding="utf-8", xml_declaration=True)
+            dst.writestr(item, data)
+    return Path(out)
+
+
 def _libcosim_figures(fmus, cfg, workdir):
-    """libcosim driven from C: PiezoSystem.ssp and a ring of three pass-through FMUs."""
-    res = {"loop_libcosim_us_per_step": None, "loop_libcosim_floor_us_per_step": None}
+    """libcosim driven from C: PiezoSystem.ssp and a ring of three pass-through FMUs, each with
+    the SSD's algorithm at ``numWorkerThreads="0"`` and (``*_pool_*``) with libcosim's default
+    worker pool (``--fixed-step``), the runs taken in turns."""
+    keys = ("loop_libcosim_us_per_step", "loop_libcosim_floor_us_per_step", "loop_libcosim_pool_us_per_step",
+            "loop_libcosim_floor_pool_us_per_step")
+    res = dict.fromkeys(keys)
     try:
         import libcosimpy
     except ImportError:
@@ -149,7 +238,9 @@ def _libcosim_figures(fmus, cfg, workdir):
                    f"-Wl,-rpath,{libdir}")
     if exe is None:
         return res
-    ssp = write_system_ssp(Path(workdir) / "PiezoSystem.ssp", {n: fmus[n] for n in ("Actuator", "Sensor", "Compensator")})
+    ssp = write_system_ssp(Path(workdir) / "PiezoSystem-default.ssp",
+                           {n: fmus[n] for n in ("Actuator", "Sensor", "Compensator")}, step=H)
+    ssp = libcosim_ssp(ssp, Path(workdir) / "PiezoSystem.ssp", workers=0)
     ring = Path(workdir) / "ring"
     (ring / "resources").mkdir(parents=True, exist_ok=True)
     shutil.copyfile(fmus["PassThrough"], ring / "resources" / "PassThrough.fmu")
@@ -160,17 +251,23 @@ def _libcosim_figures(fmus, cfg, workdir):
                          '</ssd:Connectors></ssd:Component>' for n in names)
     connections = "".join(f'<ssd:Connection startElement="{a}" startConnector="y" endElement="{b}" '
                           'endConnector="u"/>' for a, b in zip(names, names[1:] + names[:1]))
-    (ring / "SystemStructure.ssd").write_text(RING_SSD.format(components=components, connections=connections))
-    stop_ns = cfg["steps"] * 100_000
-    for key, target, cols in (("loop_libcosim_us_per_step", ssp, []),
-                              ("loop_libcosim_floor_us_per_step", ring, ["P1.y", "P2.y", "P3.y"])):
-        best = []
-        for _ in range(max(1, min(cfg["reps"], 3))):
-            proc = subprocess.run([str(exe), str(target), "100000", str(stop_ns), *cols], capture_output=True,
-                                  text=True, check=False, timeout=600, env={})
-            best.append(_numbers(proc.stdout).get("us_per_step"))
-        best = [b for b in best if b]
-        res[key] = min(best) if best else None
+    (ring / "SystemStructure.ssd").write_text(RING_SSD.format(components=components, connections=connections,
+                                                              step=repr(H), workers=0))
+    step_ns = round(H * 1e9)
+    stop_ns = cfg["steps"] * step_ns
+    runs = {"loop_libcosim_us_per_step": ([], ssp, []),
+            "loop_libcosim_floor_us_per_step": ([], ring, ["P1.y", "P2.y", "P3.y"]),
+            "loop_libcosim_pool_us_per_step": (["--fixed-step"], ssp, []),
+            "loop_libcosim_floor_pool_us_per_step": (["--fixed-step"], ring, ["P1.y", "P2.y", "P3.y"])}
+    best = {k: [] for k in keys}
+    for _ in range(max(1, min(cfg["reps"], 3))):
+        for key, (flags, target, cols) in runs.items():
+            proc = subprocess.run([str(exe), *flags, str(target), str(step_ns), str(stop_ns), *cols],
+                                  capture_output=True, text=True, check=False, timeout=600, env={})
+            best[key].append(_numbers(proc.stdout).get("us_per_step"))
+    for key in keys:
+        got = [b for b in best[key] if b]
+        res[key] = min(got) if got else None
     return res
 
 

@@ -2,12 +2,21 @@
  * libcosimc.so of the libcosimpy wheel; libcosim's C API, declared here from its documented
  * signatures: only what this program calls).
  *
- *   libcosim_run SSP STEP_NS STOP_NS [INSTANCE.VARIABLE]...
+ *   libcosim_run [--fixed-step] SSP STEP_NS STOP_NS [INSTANCE.VARIABLE]...
  *
  * prints "row t" and the Real columns (default: Actuator.x Sensor.us Compensator.uc
  * Compensator.x_target) per communication point (C99 hex doubles), then
- * "us_per_step <wall time of simulate_until per step>" and "status ok". libcosim steps the FMUs
- * from its worker threads; times are integer nanoseconds.
+ * "us_per_step <wall time of simulate_until per step>" and "status ok"; times are integer
+ * nanoseconds.
+ *
+ * The algorithm is the SSD's (cosim_ssp_execution_create): the fixed-step algorithm of its OSP
+ * annotation <osp:FixedStepAlgorithm baseStepSize=".." numWorkerThreads=".."/> (required: libcosim
+ * does not check for it), whose step must be STEP_NS (checked on the recorded times). numWorkerThreads="0" steps the FMUs on this thread, one
+ * after the other; without it libcosim keeps a pool of hardware_concurrency() - 1 worker threads
+ * and hands every FMU's step to it and back (bench_runtime's docstring: where the time goes).
+ * --fixed-step: cosim_ssp_fixed_step_execution_create(STEP_NS) instead (what libcosimpy's
+ * CosimExecution.from_ssp_file(step_size=..) does): the SSD's algorithm is ignored, so libcosim's
+ * default pool.
  */
 #include <stdbool.h>
 #include <stdint.h>
@@ -28,6 +37,7 @@ typedef struct {
     int type, causality, variability;
 } cosim_variable_description;
 
+cosim_execution *cosim_ssp_execution_create(const char *ssp, bool start_defined, int64_t start);
 cosim_execution *cosim_ssp_fixed_step_execution_create(const char *ssp, bool start_defined, int64_t start,
                                                        int64_t step);
 int cosim_execution_destroy(cosim_execution *e);
@@ -88,11 +98,17 @@ static uint32_t value_reference(cosim_execution *e, int slave, const char *name)
 
 int main(int argc, char **argv)
 {
+    bool fixed_step = argc > 1 && strcmp(argv[1], "--fixed-step") == 0;
+    argc -= fixed_step;
+    argv += fixed_step;
     if (argc < 4)
         return 2;
     int64_t step = atoll(argv[2]), stop = atoll(argv[3]);
+    if (step <= 0 || stop < step)
+        return 2;
     cosim_log_set_output_level(getenv("LC_DEBUG") ? 0 : LOG_WARNING);
-    cosim_execution *e = cosim_ssp_fixed_step_execution_create(argv[1], false, 0, step);
+    cosim_execution *e = fixed_step ? cosim_ssp_fixed_step_execution_create(argv[1], false, 0, step)
+                                    : cosim_ssp_execution_create(argv[1], false, 0);
     if (!e)
         die("execution");
     static const char *defaults[] = {"Actuator.x", "Sensor.us", "Compensator.uc", "Compensator.x_target"};
@@ -128,6 +144,12 @@ int main(int argc, char **argv)
         val[c] = calloc(m, sizeof(double));
         int64_t got = cosim_observer_slave_get_real_samples(o, idx[c], vr[c], 0, m, val[c], steps, times);
         count = count < 0 || got < count ? got : count;
+    }
+    /* the SSD's step is STEP_NS: one sample per step from 0 to STOP_NS */
+    if (count != stop / step + 1 || times[1] - times[0] != step) {
+        printf("fail step: the execution's step is not STEP_NS (%lld samples, first step %lld ns)\n",
+               (long long)count, (long long)(count > 1 ? times[1] - times[0] : 0));
+        return 3;
     }
     for (int64_t k = 0; k < count; k++) {
         printf("row %a", times[k] * 1e-9);
