@@ -46,7 +46,9 @@
      ``loop_libcosim_us_per_step`` for ``PiezoSystem.ssp`` (the FMUs' default engine, so against
      ``cosim_python_us_per_step``: ``loop_libcosim_to_master``, target <= 3) and
      ``loop_libcosim_floor_us_per_step``, three pass-through FMUs in a ring: libcosim's own cost
-     per step (its worker thread and hand-offs);
+     per step, both with the SSD's ``numWorkerThreads="0"`` (the FMUs stepped on libcosim's
+     calling thread), and ``loop_libcosim_pool_us_per_step`` / ``loop_libcosim_floor_pool_us_per_step``
+     the same with libcosim's default worker pool (its hand-offs; see :mod:`.bench_runtime`);
    * ``cosim_command_us_per_step``: the ``cosim`` command as a user runs it (a fresh process,
      ``--out run.csv``, recording every 1e-4 s, the FMUs' default engine, its progress, CSV and
      error summary), per communication step: the difference between a long and a short run

@@ -108,6 +108,7 @@ def test_archive_layout_and_ssd(ssp, fmus):
     assert float(de.get("startTime")) == 0.0 and float(de.get("stopTime")) == 0.3
     fs = de.find(f".//{{{NS['osp']}}}FixedStepAlgorithm")
     assert float(fs.get("baseStepSize")) == 1e-4
+    assert fs.get("numWorkerThreads") == "0"      # libcosim steps the FMUs on its calling thread
     assert read_ssp_bindings(ssp) == {"Compensator": {
         "reference.signal": 1, "reference.amplitude": 45.0, "reference.offset": 45.0,
         "reference.freq": 10.0, "reference.phase": -90.0, "compensator.mode": 3,
