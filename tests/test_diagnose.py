@@ -461,3 +461,16 @@ def test_cancelling_weights_still_make_a_valid_model_file():
     w = np.asarray(m["hysteresis"]["weights"], float)
     assert np.all(np.cumsum(w) > 0)
     assert m["hysteresis"]["scale"] * w[0] == pytest.approx(761.659491, rel=1e-9)
+
+
+def test_an_operator_the_data_never_move_gets_no_weight():
+    # rig-096: the top operator of a refined loop never moved (its column ~1e-160); the weights
+    # solve gave it 2.5e145 um and the model file a negative scale
+    from piezo_fmu.diagnose.varpro import _bounded_normal_solve
+
+    rng = np.random.default_rng(3)
+    m = np.column_stack([rng.standard_normal((500, 3)), 1e-160 * rng.standard_normal(500)])
+    y = m[:, :3] @ np.array([1.0, 0.5, 0.25]) + 1e-3 * rng.standard_normal(500)
+    theta = _bounded_normal_solve(m.T @ m, m.T @ y, n_bounded=0)
+    assert np.all(np.isfinite(theta)) and abs(theta[3]) < 1e-6
+    assert theta[:3] == pytest.approx([1.0, 0.5, 0.25], abs=1e-3)

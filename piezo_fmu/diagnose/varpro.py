@@ -169,7 +169,11 @@ def _scale_hint(recs, dev, p):
 
 def _bounded_normal_solve(G, rhs, n_bounded, scale_hint=1.0):
     """min ||M theta - y|| given ``G = M^T M`` and ``rhs = M^T y``; theta[:n_bounded] >= eps."""
-    d = np.sqrt(np.maximum(np.diag(G), 1e-300))
+    # a column the data never move (an operator whose threshold the input's reversals never reach)
+    # has no information: a floor relative to the largest column keeps its weight at 0 instead of
+    # 1/1e-150 (rig-096: a weight of 2.5e145 um, then a model file with a negative scale)
+    diag = np.diag(G)
+    d = np.sqrt(np.maximum(diag, 1e-18 * max(float(np.max(diag)), 1e-300)))
     Gs = G / np.outer(d, d)
     rs = rhs / d
     jitter = 1e-12
