@@ -386,3 +386,19 @@ def test_linked_grid_axis_varies_keys_together():
         loads_spec(text.replace("[45.0, 45.0]", "[45.0]"))
     with pytest.raises(SpecError, match="amplifier.R"):
         loads_spec('[grid]\n"amplifier.R, experiment.freq" = [[-1.0, 10.0]]\n')
+
+
+def test_the_local_cluster_runs_without_the_profiler_and_with_slow_housekeeping():
+    # the engine's own cluster: dask's 10 ms stack sampler and 20 ms watchdog cost the tasks CPU
+    import dask
+
+    from piezo_fmu.parallel import LOCAL_CLUSTER_CONFIG, Engine
+
+    def settings():
+        import dask
+        return {k: dask.config.get(k) for k in LOCAL_CLUSTER_CONFIG}
+
+    with Engine(workers=1) as engine:
+        on_workers = list(engine.client.run(settings).values())
+    assert on_workers and all(s == LOCAL_CLUSTER_CONFIG for s in on_workers)
+    assert dask.config.get("distributed.worker.profile.enabled") is True    # this process untouched
