@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from .scoring import markdown, summarise
-from .synth import EFFECTS, PROGRAMMES, SHAPE_VISIBLE, VISIBLE
+from .synth import EFFECTS, PROGRAMMES, VISIBLE
 
 __all__ = ["cases", "main", "rig_cases", "run_case", "run_rig_case"]
 
@@ -133,10 +133,9 @@ def run_case(spec):
     out["visibility"] = _visibility(spec, case)
     # a mechanism still below visibility at the end of its range is hidden, as in the rig: naming it
     # is no false name, missing it no miss
-    need = {e: SHAPE_VISIBLE if e == "hysteresis_shape" else VISIBLE for e in EFFECTS}
     present = [e for e in spec["effects"] if e in EFFECTS]
-    out["truth"] = [e for e in present if out["visibility"][e] >= need[e]]
-    out["hidden"] = [e for e in present if out["visibility"][e] < need[e]]
+    out["truth"] = [e for e in present if out["visibility"][e] >= VISIBLE]
+    out["hidden"] = [e for e in present if out["visibility"][e] < VISIBLE]
     out["control"] = next((e for e in spec["effects"] if e not in EFFECTS), None)
     out["case"] = f"synth-{spec['seed']}"
     out["n_samples"] = int(case.t.size)

@@ -5,12 +5,12 @@ chirps, in random order), a plant (the nominal model with its ordinary parameter
 real specimen differs from the data sheet, plus zero or more mechanisms of the catalogue switched
 on with random parameter values; ``hysteresis_shape`` adds play operators between the nominal
 ones, their weights raised until the best PI on the nominal thresholds misses the finer loop by
-``SHAPE_VISIBLE`` noise rms: a shape a recalibration absorbs is no shape; every other mechanism
-raised within its range until it changes the outputs by ``VISIBLE`` noise rms beyond a channel
-gain and offset, the rule of the independent rig), and measurement noise on the displacement and
-the sensor voltage. The plant is run by the core (``simulate``, open loop, command held over each
-sample), exactly the physics the FMUs run. The truth (which mechanisms, which values) is returned separately
-and never written into the recording.
+``VISIBLE`` noise rms: a shape a recalibration absorbs is no shape; every other mechanism raised
+within its range until it changes the outputs by ``VISIBLE`` noise rms beyond a channel gain and
+offset, the rule of the independent rig), and measurement noise on the displacement and the sensor
+voltage. The plant is run by the core (``simulate``, open loop, command held over each sample),
+exactly the physics the FMUs run. The truth (which mechanisms, which values, how visible) is
+returned separately and never written into the recording.
 
 Mechanisms the catalogue does not know can be added as negative controls: ``hum`` (a mains-like
 sinusoidal interference on the displacement channel) and ``sensor_drift`` (a slow wander of the
@@ -50,13 +50,11 @@ PROGRAMMES = ("sines", "steps", "triangles", "chirp")
 NOISE = {"low": (0.002, 0.0005), "mid": (0.01, 0.002), "high": (0.03, 0.006)}
 
 SRC = "synthetic plant (piezo_fmu.diagnose.synth)"
-# a hysteresis_shape is made visible: the best PI on the nominal thresholds misses the finer loop by
-# at least this many noise rms (the rig's VISIBLE), the added weights raised by up to this factor
-SHAPE_VISIBLE = 3.0
-# every other mechanism is raised (within its physical range) until what it changes beyond a
-# channel's gain and offset is this many noise rms over the record (the rig's VISIBLE)
+# a mechanism is raised (within its physical range) until what it changes beyond a channel's gain
+# and offset is this many noise rms over the record; a hysteresis_shape until the best PI on the
+# nominal thresholds misses the finer loop by as much (the rig's VISIBLE, both)
 VISIBLE = 3.0
-SHAPE_MAX_FACTOR = 20.0
+SHAPE_MAX_FACTOR = 20.0   # the added operators' weights raised by up to this factor
 
 
 # -- excitation ------------------------------------------------------------------------------------
@@ -240,15 +238,12 @@ def make_case(seed, effects=(), noise="mid", kinds=None, fs=5000.0, channels=("x
     res = simulate(plant, sig, duration, step=1.0 / fs, mode="open", noise=False)
     sx, ss = NOISE[noise] if isinstance(noise, str) else noise
     sigma = {"x": sx, "us": ss}
-    shape_misfit = None
     visibility = {}
     if "hysteresis_shape" in chosen:
-        plant, shape_misfit = _visible_shape(plant, base, res, sigma)
-        shape = dict(chosen["hysteresis_shape"])
-        shape["extra_weight"] *= shape_misfit["factor"]
-        chosen["hysteresis_shape"] = shape
+        plant, visibility["hysteresis_shape"], factor = _visible_shape(plant, base, res, sigma, channels)
+        chosen["hysteresis_shape"] = {**chosen["hysteresis_shape"],
+                                      "extra_weight": chosen["hysteresis_shape"]["extra_weight"] * factor}
         res = simulate(plant, sig, duration, step=1.0 / fs, mode="open", noise=False)
-        visibility["hysteresis_shape"] = shape_misfit["misfit"]
     for name in [e for e in EFFECTS if e in chosen and e in SECTION_OF]:
         plant, res, chosen[name], visibility[name] = _visible(name, plant, base, res, chosen[name], sig,
                                                               duration, fs, sigma, channels)
@@ -261,8 +256,7 @@ def make_case(seed, effects=(), noise="mid", kinds=None, fs=5000.0, channels=("x
         us = us + chosen["sensor_drift"]["rate"] * t
     truth = {"effects": sorted(chosen), "parameters": chosen, "noise": {"x": sx, "us": ss},
              "programme": desc, "seed": seed, "fs": fs, "duration_s": duration,
-             "x_clean": res["x"], "us_clean": res["us"], "plant": plant, "shape_misfit": shape_misfit,
-             "visibility": visibility}
+             "x_clean": res["x"], "us_clean": res["us"], "plant": plant, "visibility": visibility}
     return Case(t, u, x if "x" in channels else None, us if "us" in channels else None, truth)
 
 
@@ -332,38 +326,29 @@ def _visible(name, plant, base, res, par, sig, duration, fs, sigma, channels):
         res = simulate(plant, sig, duration, step=1.0 / fs, mode="open", noise=False)
 
 
-def pi9_misfit(ua, hyst, nominal_thresholds, noise_stroke):
-    """How far the loop ``hyst`` (the model's hysteresis section) lies from the best PI on the
-    nominal thresholds: rms of ``x_h - (a + sum_i w_i P_i)`` over the record, the ``w_i >= 0``
-    fitted by NNLS on the same stack voltage ``ua`` [V], in units of ``noise_stroke`` [um]."""
-    from scipy.optimize import nnls
-
-    from ..core.hysteresis import play_scan
-
-    v = np.asarray(ua, float) / hyst["u_norm"]
-    x_h = hyst["scale"] * (play_scan(v, hyst["thresholds"]) @ np.asarray(hyst["weights"], float))
-    basis = np.column_stack([play_scan(v, nominal_thresholds), np.ones_like(v), -np.ones_like(v)])
-    coef, _ = nnls(basis, x_h)
-    return float(np.sqrt(np.mean((x_h - basis @ coef) ** 2))) / noise_stroke
-
-
-def _visible_shape(plant, base, res, noise):
+def _visible_shape(plant, base, res, noise, channels):
     """Raise the added operators' weights until the finer loop is visible beyond what a
     recalibration absorbs (the rig's rule, :mod:`piezo_fmu.rig.caseset`): the best PI on the
-    nominal thresholds misses it by :data:`SHAPE_VISIBLE` noise rms, the noise of the best channel
-    expressed as hysteresis stroke (channel noise over the channel's gain from stroke). Returns
-    the plant and ``{"misfit": ..., "factor": ...}``; the stack voltage does not depend on the
-    loop (open loop), so one simulation serves every factor."""
+    nominal thresholds (non-negative weights and an offset, NNLS on the same stack voltage) misses
+    it by :data:`VISIBLE` noise rms, the noise of the best recorded channel expressed as hysteresis
+    stroke (channel noise over the channel's gain from stroke). Returns the plant, the misfit and
+    the factor the added weights were raised by; the stack voltage does not depend on the loop
+    (open loop), so one simulation and one pair of operator scans serve every factor."""
+    from scipy.optimize import nnls
+
     from ..core.hysteresis import play_scan
 
     h = plant["hysteresis"]
     r, w = np.asarray(h["thresholds"], float), np.asarray(h["weights"], float)
     r_nom = np.asarray(base["hysteresis"]["thresholds"], float)
     extra = ~np.isin(r, r_nom)
-    x_h = h["scale"] * (play_scan(np.asarray(res["ua"], float) / h["u_norm"], r) @ w)
+    v = np.asarray(res["ua"], float) / h["u_norm"]
+    plays = h["scale"] * play_scan(v, r)                        # [um] per unit weight
+    basis = np.column_stack([play_scan(v, r_nom), np.ones_like(v), -np.ones_like(v)])
+    x_h = plays @ w
     x_h = x_h - np.mean(x_h)
     stroke_noise = []
-    for c in ("x", "us"):
+    for c in channels:
         y = res[c] - np.mean(res[c])
         gain = abs(float(y @ x_h) / max(float(x_h @ x_h), 1e-300))
         if gain > 0:
@@ -372,14 +357,15 @@ def _visible_shape(plant, base, res, noise):
     factor = 1.0
     while True:
         ww = np.where(extra, w * factor, w)
-        hh = {"u_norm": h["u_norm"], "scale": h["scale"], "thresholds": r, "weights": ww}
-        misfit = pi9_misfit(res["ua"], hh, r_nom, sigma)
-        if misfit >= SHAPE_VISIBLE or factor >= SHAPE_MAX_FACTOR:
+        x_h = plays @ ww
+        coef, _ = nnls(basis, x_h)
+        misfit = float(np.sqrt(np.mean((x_h - basis @ coef) ** 2))) / sigma
+        if misfit >= VISIBLE or factor >= SHAPE_MAX_FACTOR:
             break
         factor = min(factor * 1.5, SHAPE_MAX_FACTOR)
     out = plant.copy()
     out.set("hysteresis", "weights", [float(v) for v in ww], SRC)
-    return out.check(), {"misfit": round(misfit, 3), "factor": round(factor, 3)}
+    return out.check(), round(misfit, 3), factor
 
 
 def write_recording(path, case: Case, force=False):
