@@ -11,8 +11,8 @@
  *
  * The algorithm is the SSD's (cosim_ssp_execution_create): the fixed-step algorithm of its OSP
  * annotation <osp:FixedStepAlgorithm baseStepSize=".." numWorkerThreads=".."/> (required: libcosim
- * does not check for it), whose step must be STEP_NS (checked on the recorded times). numWorkerThreads="0" steps the FMUs on this thread, one
- * after the other; without it libcosim keeps a pool of hardware_concurrency() - 1 worker threads
+ * does not check for it), whose step must be STEP_NS (checked on the recorded times).
+ * numWorkerThreads="0" steps the FMUs on this thread, one after the other; without it libcosim keeps a pool of hardware_concurrency() - 1 worker threads
  * and hands every FMU's step to it and back (bench_runtime's docstring: where the time goes).
  * --fixed-step: cosim_ssp_fixed_step_execution_create(STEP_NS) instead (what libcosimpy's
  * CosimExecution.from_ssp_file(step_size=..) does): the SSD's algorithm is ignored, so libcosim's
