@@ -85,7 +85,10 @@ SCHEMA = {
     "hysteresis": {**_hyst("device's"),
                    "saturation": _f("um", "positive_or_inf",
                                     "strain saturation y_sat: x_h / (1 + |x_h| / y_sat) (inf: none)",
-                                    math.inf)},
+                                    math.inf),
+                   "prepared": _f("V", "nonneg", "the stack's memory at the start: 0 relaxed; > 0 the memory "
+                                                 "of a sweep up to this stack voltage and back to rest before "
+                                                 "t0 (a device exercised before the run)", 0.0)},
     "creep": {
         "gains": Spec("1", "floats", "nonneg", "creep element gains relative to the hysteretic stroke", []),
         "time_constants": Spec("s", "floats", "positive", "creep element time constants", []),

@@ -66,7 +66,9 @@ def test_engine_replays_the_monolithic_model_with_every_mechanism_on(pickoff, po
                         # the ordinary physics recalibration fits: second lag stage, a first mode at
                         # 1.5 kHz, what the sensor follows, the sensor's sampling lag
                         ("amplifier", "tau_2", 2e-4), ("mechanics", "m", 8.6), ("mechanics", "pickoff", pickoff),
-                        ("resonance", "position", position), ("sensor", "lag", 2e-4)):
+                        ("resonance", "position", position), ("sensor", "lag", 2e-4),
+                        # a device exercised up to 40 V before the run starts with that memory
+                        ("hysteresis", "prepared", 40.0)):
         m.set(sec, key, v, "test")
     m.check()
     dt = 1e-4
@@ -80,6 +82,27 @@ def test_engine_replays_the_monolithic_model_with_every_mechanism_on(pickoff, po
         assert np.max(np.abs(pr[c] - ref[c])) < 1e-6 * np.ptp(ref[c]), c
     direct = predict(rec, device_from_model(m), params_from_model(m), direct=True)
     assert np.max(np.abs(direct["x"] - ref["x"])) < 1e-6 * np.ptp(ref["x"])
+
+
+@pytest.mark.parametrize("v0", [0.0, 0.35, -0.2])
+def test_a_prepared_start_is_the_core_operators_after_the_preparation_sweep(v0):
+    # the diagnose engine's prepared state against the core's play operators driven through the
+    # sweep itself (rest -> top -> first sample), and the whole replay from that state
+    from piezo_fmu.core.hysteresis import play_scan
+    from piezo_fmu.diagnose.engine import initial_state, operators
+
+    m = load_model()
+    p = params_from_model(m)
+    p.prep = 0.9 * p.u_norm
+    r = np.asarray(p.thresholds, float)
+    sweep = np.concatenate([np.linspace(0.0, 0.9, 2001), np.linspace(0.9, v0, 2001)])
+    z_core = play_scan(sweep, r)[-1]
+    assert np.allclose(initial_state(v0 * p.u_norm, p), z_core, atol=1e-12)
+    ua = p.u_norm * (v0 + 0.3 * np.sin(np.linspace(0.0, 6.0, 500)))
+    ref = play_scan(ua / p.u_norm, r, z0=z_core)
+    assert np.allclose(operators(ua, p).T, ref, atol=1e-12)
+    p.prep = 0.0                                                   # relaxed: the default
+    assert np.array_equal(initial_state(v0 * p.u_norm, p), np.zeros(r.size))
 
 
 def test_synthetic_recordings_are_reproducible_and_hide_the_truth(tmp_path):

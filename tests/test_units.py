@@ -110,6 +110,28 @@ def test_mechanical_resonance_frequency():
     assert 1 / period == pytest.approx(f_expected, rel=0.01)
 
 
+@pytest.mark.parametrize("pickoff", ["stack", "contact", "load"])
+def test_a_prepared_actuator_starts_where_a_relaxed_one_ends_after_the_sweep(pickoff):
+    """``prepared``: the memory of a sweep up to that stack voltage and back, everything after the
+    hysteresis settled; the same state a relaxed actuator reaches when it is driven through the
+    sweep and left to settle (no creep here: its slow elements would take minutes to settle)."""
+    model = load_model()
+    model.set("mechanics", "pickoff", pickoff, "test")
+    relaxed = make_actuator(model)
+    top = 0.8 * model["amplifier"]["u_max"]
+    k = model["amplifier"]["k_amp"]
+    model.set("hysteresis", "prepared", top, "test")
+    prepared = make_actuator(model)
+    for uc in np.concatenate([np.linspace(0.0, top / k, 4000), np.linspace(top / k, 0.0, 4000), np.zeros(4000)]):
+        relaxed.advance(float(uc), 1e-4)
+    assert prepared.out[3] == pytest.approx(relaxed.out[3], rel=1e-9)   # x_h: the remnant stroke
+    assert prepared.x == pytest.approx(relaxed.x, rel=1e-6)
+    assert prepared.F == pytest.approx(relaxed.F, rel=1e-6)
+    assert prepared.out[3] > 0.01                                        # [um]: not relaxed
+    model.set("hysteresis", "prepared", 0.0, "test")
+    assert make_actuator(model).out[3] == 0.0                            # 0: relaxed, as before
+
+
 def test_actuator_state_round_trip_is_bit_exact():
     act = _paper_actuator()
     for k in range(300):

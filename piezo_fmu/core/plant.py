@@ -137,6 +137,7 @@ class Actuator:
     delay : command latency [s] (resolved to the internal step);
     hysteresis : :class:`PrandtlIshlinskii` from ua [V] to free stroke [um];
     saturation : strain saturation ``y_sat`` [um]: ``x_h -> x_h / (1 + |x_h| / y_sat)`` (``inf``: none);
+    prepared : stack voltage [V] of a sweep before ``t0`` whose memory the device starts with (0: relaxed);
     creep_gains, creep_taus : creep elements (dimensionless gains, time constants [s]);
     m [kg], c [N s/m], k_a [N/m] (stack), k_f [N/m] (preload spring);
     pickoff : the force output ``F``: ``"stack"`` (F_out = k_a x_free), ``"contact"`` (k_a (x_free - x))
@@ -152,7 +153,8 @@ class Actuator:
 
     def __init__(self, *, k_amp, R, C_a, u_min, u_max, hysteresis: PrandtlIshlinskii,
                  m, c, k_a, k_f, saturation=math.inf, I_max=math.inf, delay=0.0, creep_gains=(), creep_taus=(),
-                 resonance=None, drift=(), max_step=1e-4, tau_2=0.0, pickoff="stack", resonance_at="output"):
+                 resonance=None, drift=(), max_step=1e-4, tau_2=0.0, pickoff="stack", resonance_at="output",
+                 prepared=0.0):
         self.k_amp, self.R, self.C_a = float(k_amp), float(R), float(C_a)
         self.u_min, self.u_max, self.I_max = float(u_min), float(u_max), float(I_max)
         self.delay = float(delay)
@@ -162,6 +164,7 @@ class Actuator:
         self.pickoff = pickoff
         self.hysteresis = hysteresis
         self.saturation = float(saturation)
+        self.prepared = float(prepared)
         self.m, self.c, self.k_a, self.k_f = float(m), float(c), float(k_a), float(k_f)
         self.creep_gains = [float(v) for v in creep_gains]
         self.creep_taus = [float(v) for v in creep_taus]
@@ -294,17 +297,28 @@ class Actuator:
 
     # -- state -----------------------------------------------------------------------------
     def reset(self, t0=0.0):
-        """Relaxed device at rest at time ``t0`` (zero command, zero memory)."""
+        """Device at rest at time ``t0`` (zero command): relaxed memory, or with ``prepared`` > 0
+        the memory of a sweep up to ``prepared`` volts and back to 0 V, everything after the
+        hysteresis settled at the stroke that leaves."""
         self.time = float(t0)
         self.amp_s[0] = 0.0
         self.amp_s[1] = 0.0
         for i in range(len(self.pi_z)):
             self.pi_z[i] = 0.0
-        self.creep.settle(0.0)
-        self.mech.settle(0.0)
+        x_h = 0.0
+        if self.prepared > 0.0:
+            pi_step(self.prepared * self.pi_k[0], self.pi_r, self.pi_w, self.pi_z)
+            x_h = self.pi_k[1] * pi_step(0.0, self.pi_r, self.pi_w, self.pi_z)
+            if self.pi_k[2] != 0.0:
+                x_h = x_h / (1.0 + abs(x_h) * self.pi_k[2])
+        self.creep.settle(x_h)
+        f_out = self.frc[0] * self.creep.dc_gain() * x_h
+        self.mech.settle(f_out)
+        x = self.mech.dc_gain() * f_out
+        force = {0.0: f_out, 1.0: self.frc[2] * x, 2.0: f_out - self.frc[0] * x}[self.frc[1]]
         self.dly_buf[:] = [0.0] * len(self.dly_buf)
         self.dly[1] = 0.0
-        self.out[:] = [self._drift_at(self.time), 0.0, 0.0, 0.0]
+        self.out[:] = [x + self._drift_at(self.time), force, 0.0, x_h]
 
     def _drift_at(self, t):
         return sum(c * t ** i for i, c in enumerate(self.drift))

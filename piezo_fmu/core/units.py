@@ -88,6 +88,7 @@ def actuator_from(sections) -> Actuator:
         pickoff=me.get("pickoff", "stack"), resonance_at=res.get("position", "output"),
         hysteresis=hysteresis_from(sections),
         saturation=sections["hysteresis"].get("saturation", float("inf")),
+        prepared=sections["hysteresis"].get("prepared", 0.0),
         m=me["m"], c=me["c"], k_a=me["k_a"], k_f=me["k_f"],
         creep_gains=cr.get("gains", []), creep_taus=cr.get("time_constants", []),
         resonance=(f_n, res.get("zeta", 0.05)) if f_n > 0 else None,

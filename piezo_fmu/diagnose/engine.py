@@ -93,11 +93,11 @@ def _kernels():
         return min(z, v + r)
 
     @numba.njit(cache=True, nogil=True)
-    def play_run(v, r, z):
+    def play_run(v, r, z, z0):
         # the operators are independent: one pass per operator keeps the writes contiguous
         for i in range(r.size):
             ri = r[i]
-            zi = 0.0
+            zi = z0[i]
             row = z[i]
             for k in range(v.size):
                 zi = play(zi, v[k], ri)
@@ -105,13 +105,13 @@ def _kernels():
         return z
 
     @numba.njit(cache=True, nogil=True)
-    def pi_run(v, r, w, y_inv, out):
+    def pi_run(v, r, w, y_inv, out, z0):
         # the weighted sum of the operators (and the strain saturation) without storing them
         out[:] = 0.0
         for i in range(r.size):
             ri = r[i]
             wi = w[i]
-            zi = 0.0
+            zi = z0[i]
             for k in range(v.size):
                 zi = play(zi, v[k], ri)
                 out[k] += wi * zi
@@ -133,12 +133,23 @@ def amplifier_output(rec: Recording, dev: Device, p: Params) -> np.ndarray:
     return amp_run(rec.u, nd, dev.k_amp, p.tau, p.slew, dev.u_min, dev.u_max, rec.dt, float(p.tau2), out)
 
 
+def initial_state(ua0: float, p: Params) -> np.ndarray:
+    """The operators' state at the first sample: relaxed (0) or, with ``p.prep`` > 0, after a
+    preparation sweep from rest up to ``p.prep`` volts and back down to the first sample's ``ua0``
+    (a rig exercised before the record starts leaves that memory in the stack)."""
+    r = np.asarray(p.thresholds, dtype=float)
+    if p.prep <= 0.0:
+        return np.zeros(r.size)
+    top, v0 = p.prep / p.u_norm, ua0 / p.u_norm
+    return np.minimum(v0 + r, np.maximum(top - r, 0.0))
+
+
 def operators(ua: np.ndarray, p: Params) -> np.ndarray:
-    """Play-operator outputs ``(N, n)`` for the stack voltage ``ua``, from the relaxed state."""
+    """Play-operator outputs ``(N, n)`` for the stack voltage ``ua``, from :func:`initial_state`."""
     play_run = _kernels()[1]
     r = np.asarray(p.thresholds, dtype=float)
     z = np.empty((r.size, ua.size))
-    return play_run(ua / p.u_norm, r, z)
+    return play_run(ua / p.u_norm, r, z, initial_state(float(ua[0]), p))
 
 
 @lru_cache(maxsize=256)
@@ -188,6 +199,7 @@ def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output"):
     """
     num, den = np.array([1.0]), np.array([1.0])
     front = None
+    dc = 1.0                 # static gain before the leakage, from the continuous blocks (exact)
     if res is not None and res_at == "drive":
         # the core discretises creep and the drive's mode as one block, (1 + sum g/(tau s + 1)) M(s);
         # its discretisation is the sum of those of the parallel terms M and g M / (tau s + 1), each
@@ -195,6 +207,7 @@ def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output"):
         mn, md = mode_tf(*res)
         terms = [(mn, md)] + [series_tf((np.array([g]), np.array([tau, 1.0])), (mn, md)) for g, tau in creep]
         front = []
+        dc = sum(float(tn[-1]) / float(td[-1]) for tn, td in terms)
         for tn, td in terms:
             b, a = foh_filter(tuple(float(v) for v in tn), tuple(float(v) for v in td), h)
             front.append(_sos(b, a))
@@ -207,6 +220,7 @@ def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output"):
             num = _padd(np.convolve(num, a), g * np.convolve(b, den))
             den = np.convolve(den, a)
         blocks = [(num, den)] if creep else []
+        dc = 1.0 + sum(g for g, _ in creep)
     m, c, k_a, k_f = mech
     gain = k_a * 1e-6
     if channel == "x" or pick in ("load", "contact"):
@@ -216,14 +230,15 @@ def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output"):
             # F_c / F_out = 1 - k_a 1e-6 x / F_out (the core subtracts k_a x from F_out: the same map)
             mn = _padd(np.asarray(md, float)[::-1], -k_a * 1e-6 * np.asarray(mn, float)[::-1])[::-1]
         blocks.append(foh_filter(tuple(float(v) for v in mn), tuple(float(v) for v in md), h))
+        dc *= float(np.asarray(mn, float)[-1]) / float(np.asarray(md, float)[-1])
         if channel == "us" and pick == "load":
             gain *= k_f * 1e-6
     if channel == "us" and math.isfinite(tau_leak):
         blocks.append(foh_filter((tau_leak, 0.0), (tau_leak, 1.0), h))
     sos = [_sos(b, a) for b, a in blocks]
     if not sos:
-        return front, None, gain
-    return front, np.vstack(sos), gain
+        return front, None, gain, dc
+    return front, np.vstack(sos), gain, dc
 
 
 def _sos(b, a):
@@ -243,19 +258,31 @@ def _sos(b, a):
 def chain(cols, channel, dev: Device, p: Params, h):
     """``x`` [um] (channel "x") or the sensor's force [N] (channel "us") from the hysteretic stroke
     (before the channel's sampling lag)."""
-    front, sos, gain = _chain_sos(channel, tuple((float(g), float(t)) for g, t in p.creep),
+    front, sos, gain, dc = _chain_sos(channel, tuple((float(g), float(t)) for g, t in p.creep),
                            None if p.res is None else (float(p.res[0]), float(p.res[1])),
                            float(p.tau_leak) if channel == "us" else math.inf,
                            (float(p.m), float(p.c), dev.k_a, dev.k_f), p.pick, float(h), p.res_at)
     cols = cols * gain
+    # the chain starts settled at the first sample's stroke (a prepared start has one; a relaxed
+    # start is at zero): its steady response to that level, plus the filtered change from it
+    c0 = cols[..., :1]
+    settled = bool(np.any(c0))
+    if settled:
+        cols = cols - c0
     if front is not None:
         acc = sosfilt(front[0], cols, axis=-1)
         for f in front[1:]:
             acc += sosfilt(f, cols, axis=-1)
         cols = acc
-    if sos is None:
-        return cols
-    return sosfilt(sos, cols, axis=-1)
+    if sos is not None:
+        cols = sosfilt(sos, cols, axis=-1)
+    if settled:
+        # a sensor's leakage is not settled: the core's sensor starts charged with the first force
+        # and leaks from there (Sensor.reset(F)), the step response of the leakage block
+        if channel == "us" and math.isfinite(p.tau_leak):
+            dc = dc * np.exp(-np.arange(cols.shape[-1]) * (h / p.tau_leak))
+        cols = cols + dc * c0
+    return cols
 
 
 def shift(a, n):
@@ -301,7 +328,7 @@ def stroke(rec: Recording, dev: Device, p: Params, rp: Replay | None = None):
     pi_run = _kernels()[2]
     y_inv = 1.0 / p.y_sat if math.isfinite(p.y_sat) else 0.0
     return pi_run(ua / p.u_norm, np.asarray(p.thresholds, float), np.asarray(p.weights, float), y_inv,
-                  np.empty(rec.n))
+                  np.empty(rec.n), initial_state(float(ua[0]), p))
 
 
 def predict(rec: Recording, dev: Device, p: Params, rp: Replay | None = None, direct=False) -> dict:

@@ -248,7 +248,7 @@ class Fitter:
 
     # -- evaluation ------------------------------------------------------------------------------
     def replays(self, p: Params):
-        key = (p.tau, p.tau2, p.slew, p.delay, p.u_norm, tuple(np.asarray(p.thresholds).tolist()))
+        key = (p.tau, p.tau2, p.slew, p.delay, p.u_norm, p.prep, tuple(np.asarray(p.thresholds).tolist()))
         rp = self._replays.get(key)
         if rp is None:
             rp = [replay(r, self.dev, p) for r in self.recs]

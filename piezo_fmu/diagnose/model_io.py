@@ -78,6 +78,8 @@ class Params:
     S: float = 1.0                   # sensor sensitivity [V/N]
     off_s: float = 0.0               # sensor offset [V]
     tau_leak: float = math.inf       # [s]
+    prep: float = 0.0                # the operators' state at the first sample: 0 relaxed; > 0 after a
+                                     # preparation sweep up to this stack voltage [V] and back to the start
 
     def copy(self):
         return copy.deepcopy(self)
@@ -145,7 +147,7 @@ def params_from_model(model, dt=None) -> Params:
         weights=h["scale"] * np.array(h["weights"], float), m=me["m"], c=me["c"],
         tau2=a.get("tau_2", 0.0), pick=me.get("pickoff", "stack"),
         lag_x=lag(meas.get("lag", 0.0)), lag_us=lag(s.get("lag", 0.0)),
-        y_sat=h.get("saturation", math.inf),
+        y_sat=h.get("saturation", math.inf), prep=h.get("prepared", 0.0),
         slew=a.get("I_max", math.inf) / a["C_a"], delay=a.get("delay", 0.0),
         creep=list(zip(cr.get("gains", []), cr.get("time_constants", []))),
         res=(res["f_n"], res["zeta"]) if res.get("f_n", 0.0) > 0 else None,
@@ -198,6 +200,9 @@ def model_from_params(base, p: Params, sources: dict, dt=None):
     put("hysteresis", "weights", ws, fitted + " (bounded least squares, every partial sum > 0)")
     put("hysteresis", "saturation", _num(p.y_sat) if math.isfinite(p.y_sat) else math.inf,
         "diagnose: nominal saturation, scaled with the recalibrated stroke")
+    put("hysteresis", "prepared", _num(p.prep),
+        "diagnose: the recording starts with the memory of a sweep up to this stack voltage" if p.prep > 0
+        else "diagnose: the recording starts relaxed")
     put("creep", "gains", [_num(g) for g, _ in p.creep], fitted if p.creep else "diagnose: no creep found")
     put("creep", "time_constants", [_num(t) for _, t in p.creep], fitted if p.creep else "diagnose: no creep found")
     put("resonance", "f_n", _num(p.res[0]) if p.res else 0.0, fitted if p.res else "diagnose: no further mode found")

@@ -5,17 +5,21 @@ paper's structure in ordinary ways. None of that is missing physics, so all of i
 
 1. the PI weights (bounded least squares, every partial sum positive), the displacement gain and
    offset, the sensor gain and offset, the strain saturation, the amplifier's lag ``R C_a``;
-2. the mechanics' **first mode** (frequency 100 Hz - 20 kHz via the moving mass, damping via
+2. the operators' **state at the first sample** (relaxed, or the memory of a preparation sweep up
+   to the record's top voltage) and the **voltage scale of the PI thresholds** (``u_norm``: the
+   nominal pattern of thresholds at the device's voltages), each kept when it beats the start
+   clearly;
+3. the mechanics' **first mode** (frequency 100 Hz - 20 kHz via the moving mass, damping via
    ``c``) together with **what the sensor channel follows** (:data:`PICKOFFS`: the stack's blocked
    force, the contact force between stack and push rod, or the load spring's force, i.e. the
    push-rod displacement): a grid, then a joint fit of the best points. Kept only when the data
    see it (the fit beats the nominal mode clearly); otherwise the nominal mode stays and the
    report says it was not visible;
-3. the amplifier's **order**: a second lag stage ``tau_2`` kept when it beats a first-order
+4. the amplifier's **order**: a second lag stage ``tau_2`` kept when it beats a first-order
    amplifier clearly;
-4. the channels' **sampling lags** (whole samples, 0-2; with both channels recorded only their
+5. the channels' **sampling lags** (whole samples, 0-2; with both channels recorded only their
    difference is ordinary: a lag common to both is the catalogue's ``time_delay``);
-5. a joint fit of everything kept, and the uncertainty of each value (from the Jacobian, with the
+6. a joint fit of everything kept, and the uncertainty of each value (from the Jacobian, with the
    effective sample size of the residual).
 
 "Clearly" is the selection's own yardstick: a BIC gain of more than ``ACCEPT['dbic']`` with the
@@ -80,8 +84,14 @@ def recalibrate(fitter: Fitter, p_start, struct: Structure, step) -> Recalibrati
     # -- 1. the amplifier lag with the nominal mechanics -----------------------------------------------
     p, _ = fitter.fit_scalar(p, struct, "tau")
     rc.params = _fit(fitter, p, struct, ["tau"], 8).params
+    # -- 2. the hysteresis' memory at the first sample, and the voltage scale of its thresholds -----------
+    step("recalibrating the hysteresis' state at the start of the recording")
+    _history(fitter, rc, struct, sat)
+    step("recalibrating the voltage scale of the hysteresis thresholds")
+    _threshold_scale(fitter, rc, struct, sat)
     revisit(fitter, rc, struct, step)
-    rc.report["uncertainty"] = uncertainty(fitter, rc.params, struct, fitter.ordinary + sat)
+    scale = ["u_norm"] if rc.report["threshold_scale"].get("identified") else []
+    rc.report["uncertainty"] = uncertainty(fitter, rc.params, struct, fitter.ordinary + sat + scale)
     return rc
 
 
@@ -261,6 +271,70 @@ def _mode(fitter, rc, struct, sat):
         return True
     why = ("at the end of its search range" if edge else f"not visible in this recording (BIC gain {gain:.1f})")
     return _mode_not_identified(rc, p, why, f_nom, z_nom)
+
+
+def _history(fitter, rc, struct, sat):
+    """The operators' state at the first sample: relaxed, or left by a preparation sweep up to the
+    recording's highest stack voltage and back (a rig exercised before each record). The record's
+    first excursions differ until the voltage passes that top; kept when it beats relaxed
+    operators clearly."""
+    p = rc.params
+    top = max(min(float(np.max(r.u)) * fitter.dev.k_amp, fitter.dev.u_max) for r in fitter.recs)
+    if top <= 0.0:
+        rc.report["initial_state"] = {"value": "relaxed", "why": "the command never rises above zero"}
+        return False
+    q = p.copy()
+    q.prep = top
+    fr = _fit(fitter, q, struct, ["tau"] + sat, 6)
+    gain, _ = _gain(fitter, p, fr.params, 1)
+    if gain > ACCEPT["dbic"]:
+        rc.params = fr.params
+        rc.report["initial_state"] = {"value": "prepared", "top_V": float(f"{top:.6g}"), "bic_gain": round(gain, 1)}
+        rc.notes.append(f"the recording starts with the hysteresis' memory of a sweep up to {top:.4g} V of "
+                        "stack voltage (the device was exercised before the record)")
+        return True
+    rc.report["initial_state"] = {"value": "relaxed", "bic_gain_of_prepared": round(gain, 1)}
+    return False
+
+
+THRESHOLD_SCALES = (0.3, 0.45, 0.7, 1.4)     # starting points of the threshold scale's fit (x the start)
+
+
+def _threshold_scale(fitter, rc, struct, sat):
+    """The voltage scale of the PI thresholds (``u_norm``): the thresholds keep their nominal
+    pattern, the voltage they sit at is the device's. The nominal scale comes from another stack
+    and amplifier (or from the recording's span): a loop that bends at other voltages is ordinary,
+    not a missing loop shape. A short fit from a few starting scales (weights, saturation and lag
+    re-fitted at each), then a joint fit from the best; kept when it beats the start clearly and
+    does not settle at the end of its range."""
+    p = rc.params
+    if "u_norm" not in fitter.limits:
+        rc.report["threshold_scale"] = {"identified": False, "why": "no range given"}
+        return False
+    lo, hi = fitter.limits["u_norm"]
+    trials = []
+    for k in THRESHOLD_SCALES:
+        q = p.copy()
+        q.u_norm = float(np.clip(p.u_norm * k, lo * 1.01, hi / 1.01))
+        trials.append(_fit(fitter, q, struct, ["tau"] + sat, 4))
+    best = min(trials, key=lambda fr: fr.cost)
+    if best.cost >= fitter.cost(p):
+        rc.report["threshold_scale"] = {"identified": False, "why": "no other scale fits better"}
+        return False
+    fr = _fit(fitter, best.params, struct, ["u_norm", "tau"] + sat, 8)
+    gain, _ = _gain(fitter, p, fr.params, 1)
+    edge = _edge(fitter, "u_norm", fr.params.u_norm)
+    if gain > ACCEPT["dbic"] and not edge:
+        rc.report["threshold_scale"] = {"identified": True, "bic_gain": round(gain, 1),
+                                        "u_norm_V": float(f"{fr.params.u_norm:.6g}"),
+                                        "start_V": float(f"{p.u_norm:.6g}")}
+        rc.params = fr.params
+        rc.notes.append(f"the hysteresis thresholds sit at {fr.params.u_norm / p.u_norm:.3g} x the starting "
+                        f"voltage scale (u_norm {fr.params.u_norm:.4g} V instead of {p.u_norm:.4g} V)")
+        return True
+    rc.report["threshold_scale"] = {"identified": False, "why": "at the end of its search range" if edge
+                                    else f"not clearly better (BIC gain {gain:.1f})"}
+    return False
 
 
 def _order(fitter, rc, struct, sat):

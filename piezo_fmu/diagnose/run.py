@@ -147,9 +147,15 @@ def _analyse(raw, model, say, max_rounds, time_budget_s):
     fitter.limits["tau2"] = (max(1e-7, p.tau / 100), 3 * p.tau)
     if math.isfinite(p.y_sat):
         fitter.limits["y_sat"] = (0.3 * stroke, max(1000 * stroke, 10 * p.y_sat))
+    # the thresholds' voltage scale: from a tenth to three times the starting one
+    fitter.limits["u_norm"] = (0.1 * p.u_norm, 3.0 * p.u_norm)
     fitter.restart = {"tau": p.tau, "y_sat": p.y_sat}
     recal = recalibrate(fitter, p, struct_nom, step)
     p = recal.params
+    scale = recal.report.get("threshold_scale", {})
+    if scale.get("identified"):
+        sources[("hysteresis", "u_norm")] = (f"re-fitted by piezo-fmu diagnose: the thresholds' voltage scale "
+                                             f"(from {scale['start_V']:.4g} V)")
     # channel weights from the recalibrated residuals, then once more
     sets, _ = residual_sets(fitter, p)
     fitter.lam = {c: 1.0 / max(float(np.mean(sets[c]["train"] ** 2)), 1e-300) for c in sets}

@@ -20,6 +20,9 @@ from .model_io import Device, Params
 
 __all__ = ["residuals", "solve_linear"]
 
+S_ROUNDS = 200     # most alternations of the sensor gain with the weights per solve
+S_TOL = 1e-9       # relative change of the sensor gain at which the alternation stops
+
 
 def _design(rec, dev, p, rp, lin_w):
     """Columns (per weight) of x and of the sensor force, plus the known part from saturation."""
@@ -88,7 +91,13 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
         qx = np.zeros(kx)
         qx[n] = 1.0
         S = p.S
-        for _ in range(3 if (has_x and has_us and fit_sensor_gain) else 1):
+        # the sensor gain and the weights alternate until the gain settles: with both channels
+        # the alternation converges only linearly, and a gain far from the data's (a sensor of
+        # another sensitivity) needs tens of rounds; three left the displacement at a fifth of
+        # its stroke (rig-125)
+        bilinear = has_x and has_us and fit_sensor_gain
+        for _ in range(S_ROUNDS if bilinear else 1):
+            S_prev = S
             G = np.zeros((n_par, n_par))
             rhs = np.zeros(n_par)
             if has_x:
@@ -117,6 +126,8 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
                     s_new = S
                 if s_new > 0 and np.isfinite(s_new):
                     S = float(s_new)
+                if abs(S - S_prev) <= S_TOL * abs(S):
+                    break
         p.weights = w
         p.S = S
         if has_x:
