@@ -105,6 +105,40 @@ def test_a_prepared_start_is_the_core_operators_after_the_preparation_sweep(v0):
     assert np.array_equal(initial_state(v0 * p.u_norm, p), np.zeros(r.size))
 
 
+@pytest.mark.parametrize("tau_leak", [math.inf, 3.0])
+def test_the_linear_solve_recovers_a_drift_that_reaches_a_load_pickoff(tau_leak):
+    # a sensor on the load spring follows the push rod: a thermal drift reaches it too; the exact
+    # linear solve (weights, sensor gain, offsets, drift in both channels) recovers it from the
+    # engine's own noise-free signals, started from wrong values
+    from piezo_fmu.diagnose.varpro import solve_linear
+
+    m = load_model()
+    m.set("mechanics", "pickoff", "load", "test")
+    m.set("sensor", "tau_leak", tau_leak, "test")
+    dt = 1e-3
+    t = np.arange(6001) * dt
+    u = 2.0 + 2.0 * np.sin(2 * np.pi * 1.0 * t) * (t > 0.5)
+    dev = device_from_model(m)
+    true = params_from_model(m, dt)
+    true.rate, true.curv, true.off_x, true.off_s = 0.03, -0.004, 0.2, 0.01
+    true.y_sat = math.inf               # no saturation: one exact solve, no Gauss-Newton steps
+    rec = Recording("a", t, dt, u, None, None, np.zeros(t.size, bool))
+    pr = predict(rec, dev, true)
+    rec = Recording("a", t, dt, u, pr["x"], pr["us"], np.zeros(t.size, bool))
+    p = true.copy()
+    p.rate = p.curv = p.off_x = p.off_s = 0.0
+    p.S *= 3.0
+    p.weights = p.weights * 0.5
+    lam = {"x": 1.0 / np.var(rec.x), "us": 1.0 / np.var(rec.us)}
+    solve_linear([rec], dev, p, lam, drift_terms=2)
+    assert p.rate == pytest.approx(true.rate, rel=1e-5)
+    assert p.curv == pytest.approx(true.curv, rel=1e-5)
+    assert p.S == pytest.approx(true.S, rel=1e-6)
+    got = predict(rec, dev, p)
+    for c in ("x", "us"):
+        assert np.max(np.abs(got[c] - pr[c])) < 1e-6 * np.ptp(pr[c]), c
+
+
 def test_synthetic_recordings_are_reproducible_and_hide_the_truth(tmp_path):
     a = make_case(3, ["creep"], "mid", ["steps", "sines"], fs=1000.0)
     b = make_case(3, ["creep"], "mid", ["steps", "sines"], fs=1000.0)

@@ -180,17 +180,19 @@ def test_second_order_amplifier_follows_two_lags():
 
 
 def test_pickoffs_sense_the_spring_or_the_contact_force():
-    """mechanics.pickoff = load: the sensed force is k_f x (drift excluded), with the mechanics' ringing;
+    """mechanics.pickoff = load: the sensed force is k_f x with the mechanics' ringing, and a drift's
+    change moves the push rod, so the spring feels it too (not the reading's constant offset);
     contact: k_a (x_free - x)."""
     model = load_model()
     m = model.copy()
     m.sections["mechanics"]["pickoff"] = "load"
     m.sections["drift"]["rate"] = 0.3
+    m.sections["drift"]["offset"] = 0.7
     act = make_actuator(m)
     me = model["mechanics"]
     for j in range(300):
         act.advance(3.0 + 2.0 * (j > 100), 1e-5)
-        assert act.F == pytest.approx(me["k_f"] * 1e-6 * (act.x - 0.3 * act.time), rel=1e-12, abs=1e-15)
+        assert act.F == pytest.approx(me["k_f"] * 1e-6 * (act.x - 0.7), rel=1e-12, abs=1e-15)
     assert make_actuator(model).advance(3.0, 1e-5) != 0.0
     m.sections["mechanics"]["pickoff"] = "contact"
     act = make_actuator(m)
@@ -199,7 +201,7 @@ def test_pickoffs_sense_the_spring_or_the_contact_force():
         act.advance(3.0 + 2.0 * (j > 100), 1e-5)
         ref.advance(3.0 + 2.0 * (j > 100), 1e-5)
         # the contact force k_a (x_free - x) = F_out - k_a x (the mechanics' inertia and damping show)
-        assert act.F == pytest.approx(ref.F - me["k_a"] * 1e-6 * (act.x - 0.3 * act.time), rel=1e-9, abs=1e-12)
+        assert act.F == pytest.approx(ref.F - me["k_a"] * 1e-6 * (act.x - 0.7 - 0.3 * act.time), rel=1e-9, abs=1e-12)
 
 
 def test_a_mode_on_the_drive_shows_in_the_stack_force():

@@ -82,7 +82,8 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     ``dly`` = [n_delay_steps, head] (delay line of the command, ``dly_buf`` its ring buffer);
     ``pi_k`` = [1/u_norm, scale, 1/saturation] (strain saturation ``x_h / (1 + |x_h| / y_sat)``,
     0 = none); ``frc`` = [k_a * 1e-6 [N/um], pick-off code (0 stack, 1 load, 2 contact), k_f * 1e-6 [N/um]];
-    ``drift`` = polynomial coefficients of an additive displacement drift in time [um, um/s, ...].
+    ``drift`` = polynomial coefficients of an additive displacement drift in time [um, um/s, ...]
+    (with the load pick-off the force follows the drift's change too: it moves the push rod).
     Writes ``out`` = [x [um], F [N] (the sensed force), ua [V], x_h [um]].
     """
     nd = int(dly[0])
@@ -110,16 +111,18 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     x_free = lti_advance(cr_phi, cr_g, cr_cd, cr_xs, x_h, cr_tmp)
     force = frc[0] * x_free
     x = lti_advance(me_phi, me_g, me_cd, me_xs, force, me_tmp)
-    if frc[1] == 1.0:
-        force = frc[2] * x
-    elif frc[1] == 2.0:
-        force = force - frc[0] * x
     nd2 = len(drift)
+    acc = 0.0
     if nd2:
-        acc = 0.0
         for i in range(nd2 - 1, -1, -1):
             acc = acc * t_end + drift[i]
-        x += acc
+    if frc[1] == 1.0:
+        # the load spring follows the push rod, and a thermal drift moves the push rod: the force
+        # sees the drift's change (not the constant offset of the displacement reading)
+        force = frc[2] * (x + (acc - drift[0] if nd2 else 0.0))
+    elif frc[1] == 2.0:
+        force = force - frc[0] * x
+    x += acc
     out[0] = x
     out[1] = force
     out[2] = ua
@@ -315,7 +318,8 @@ class Actuator:
         f_out = self.frc[0] * self.creep.dc_gain() * x_h
         self.mech.settle(f_out)
         x = self.mech.dc_gain() * f_out
-        force = {0.0: f_out, 1.0: self.frc[2] * x, 2.0: f_out - self.frc[0] * x}[self.frc[1]]
+        trend = self._drift_at(self.time) - (self.drift[0] if self.drift else 0.0)
+        force = {0.0: f_out, 1.0: self.frc[2] * (x + trend), 2.0: f_out - self.frc[0] * x}[self.frc[1]]
         self.dly_buf[:] = [0.0] * len(self.dly_buf)
         self.dly[1] = 0.0
         self.out[:] = [x + self._drift_at(self.time), force, 0.0, x_h]

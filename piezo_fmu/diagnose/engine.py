@@ -297,7 +297,25 @@ def shift(a, n):
 
 
 def drift(t, p: Params):
-    return p.off_x + p.rate * t + p.curv * t * t
+    """The displacement reading's drift [um]: offset plus :func:`trend`."""
+    return p.off_x + trend(t, p)
+
+
+def load_trend(t, dev: Device, p: Params, h):
+    """The load spring's force from the drift's change [N] (through the sensor's leakage)."""
+    return leak(dev.k_load * trend(t, p), p.tau_leak, h)
+
+
+def leak(f, tau_leak, h):
+    """``f`` through the sensor's charge leakage ``tau s / (tau s + 1)`` (from rest; none when inf)."""
+    if math.isfinite(tau_leak):
+        return _filt([tau_leak, 0.0], [tau_leak, 1.0], h, f)
+    return f
+
+
+def trend(t, p: Params):
+    """The drift's change since the start [um] (a load pick-off's force follows it: k_load trend)."""
+    return p.rate * t + p.curv * t * t
 
 
 def saturate(hx, y_sat):
@@ -342,7 +360,10 @@ def predict(rec: Recording, dev: Device, p: Params, rp: Replay | None = None, di
     else:
         rp = rp or replay(rec, dev, p)
         hx = stroke(rec, dev, p, rp)
+    force = chain(hx, "us", dev, p, rec.dt)
+    if p.pick == "load" and (p.rate or p.curv):
+        force = force + load_trend(rec.t, dev, p, rec.dt)
     out = {"x": shift(chain(hx, "x", dev, p, rec.dt) + drift(rec.t, p), p.lag_x),
-           "us": shift(p.S * chain(hx, "us", dev, p, rec.dt) + p.off_s, p.lag_us),
+           "us": shift(p.S * force + p.off_s, p.lag_us),
            "ua": rp.ua if rp is not None else None, "x_h": hx}
     return out

@@ -305,7 +305,8 @@ class Fitter:
             y, basis, bb, by, yy = data
             pr = np.concatenate([pd[ch][r.train] for r, pd in zip(self.recs, preds)
                                  if getattr(r, ch) is not None])
-            k = 3 if (drift and ch == "x") else 1
+            # a load pick-off follows the push rod: a drift reaches it too
+            k = 3 if (drift and (ch == "x" or p.pick == "load")) else 1
             c, rhs = _gain_offset(pr, y, basis, bb, by, k)
             sse += self.lam[ch] * max(yy - float(c @ rhs), 0.0)
         return sse
@@ -325,7 +326,7 @@ class Fitter:
             y, basis, bb, by, _ = data
             pr = np.concatenate([pd[ch][r.train] for r, pd in zip(self.recs, preds)
                                  if getattr(r, ch) is not None])
-            k = 1 + (struct.drift_terms if ch == "x" else 0)
+            k = 1 + (struct.drift_terms if (ch == "x" or p.pick == "load") else 0)
             c, rhs = _gain_offset(pr, y, basis, bb, by, k)
             e = y - c[0] * pr - c[1:] @ basis[:k]
             out.append(math.sqrt(self.lam[ch]) * e)

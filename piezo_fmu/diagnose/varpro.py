@@ -15,7 +15,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.optimize import lsq_linear
 
-from .engine import chain, predict, replay, saturate, shift
+from .engine import chain, leak, predict, replay, saturate, shift
 from .model_io import Device, Params
 
 __all__ = ["residuals", "solve_linear"]
@@ -61,8 +61,10 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
     iters = 1
     if math.isfinite(p.y_sat):
         iters = gn_iter + (1 if lin_w is None else 0)
+    # a load pick-off follows the push rod: a drift of the displacement reaches the sensor too
+    nt = drift_terms if (has_x and has_us and p.pick == "load") else 0
     for _ in range(iters):
-        kx, ks = n + 1 + nd, n + 2              # rows of the x and us designs
+        kx, ks = n + 1 + nd, n + 2 + nt         # rows of the x and us designs
         Mx, cx, Ms, cs = np.zeros((kx, kx)), np.zeros(kx), np.zeros((ks, ks)), np.zeros(ks)
         for r, rp in zip(recs, replays):
             ax, asf = _design(r, dev, p, rp, lin_w)
@@ -82,6 +84,8 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
                 cmat = np.empty((ks, r.n))
                 cmat[:n + 1] = asf
                 cmat[n + 1] = 1.0
+                for j in range(nt):              # the drift's rate and curvature terms in the force
+                    cmat[n + 2 + j] = shift(leak(dev.k_load * r.t ** (j + 1), p.tau_leak, r.dt), p.lag_us)
                 Ms += _gram(cmat, r, rows)
                 cs += _gram_vec(cmat, r.us, r, rows)
         # coefficient maps: c_x = Px theta + qx, c_s = Ps theta + qs
@@ -107,6 +111,8 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
                 Ps = np.zeros((ks, n_par))
                 Ps[:n, :n] = S * diff
                 Ps[n + 1, n_par - 1] = 1.0
+                for j in range(nt):
+                    Ps[n + 2 + j, n + 1 + j] = S
                 qs = np.zeros(ks)
                 qs[n] = S
                 G += lam["us"] * (Ps.T @ Ms @ Ps)
@@ -114,11 +120,15 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
             sol = _bounded_normal_solve(G, rhs, n, scale_hint=_scale_hint(recs, dev, p))
             w = diff @ sol[:n]
             if has_x and has_us and fit_sensor_gain:
-                # us = S * (force columns @ w + known) + offset: regression on (prediction, 1)
-                v = np.concatenate([w, [1.0]])
-                pp = v @ Ms[:n + 1, :n + 1] @ v
-                p1 = v @ Ms[:n + 1, n + 1]
-                py = v @ cs[:n + 1]
+                # us = S * (force columns @ w + known + drift terms) + offset: regression on
+                # (prediction, 1)
+                v = np.zeros(ks)
+                v[:n] = w
+                v[n] = 1.0
+                v[n + 2:] = sol[n + 1:n + 1 + nt]
+                pp = v @ Ms @ v
+                p1 = v @ Ms[:, n + 1]
+                py = v @ cs
                 a = np.array([[pp, p1], [p1, Ms[n + 1, n + 1]]])
                 try:
                     s_new = np.linalg.solve(a, [py, cs[n + 1]])[0]
