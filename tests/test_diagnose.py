@@ -531,3 +531,48 @@ def test_an_operator_the_data_never_move_gets_no_weight():
     theta = _bounded_normal_solve(m.T @ m, m.T @ y, n_bounded=0)
     assert np.all(np.isfinite(theta)) and abs(theta[3]) < 1e-6
     assert theta[:3] == pytest.approx([1.0, 0.5, 0.25], abs=1e-3)
+
+
+# -- devices the tool was not built from (piezo_fmu.rig, written independently) ----------------------
+
+def _rig_recording(case_id):
+    from piezo_fmu import rig
+
+    spec = next(s for s in rig.cases() if s.case_id == case_id)
+    rec = rig.generate(spec)
+    return rec, [{"name": case_id, "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
+
+
+def test_an_independent_device_is_recalibrated_not_named():
+    # rig-046: a clean Krasnosel'skii-Pokrovskii device (not PI) on other thresholds, exercised up to
+    # its top voltage before the record, a first mode near 300 Hz and a displacement pick-off. The
+    # recalibration finds the stack's starting memory, the thresholds' voltage scale and the mode;
+    # nothing is named and nothing is missing
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-046")
+    assert rec.truth["mechanisms"] == [] and rec.truth["control"] is None
+    res = analyse(raw).result
+    rc = res["baseline"]["recalibrated"]
+    assert rc["initial_state"]["value"] == "prepared"
+    assert rc["threshold_scale_V"]["identified"]
+    assert rc["first_mode_hz"]["identified"]
+    assert rc["first_mode_hz"]["value"] == pytest.approx(rec.truth["params"]["mechanics.f1"]["value"], rel=0.05)
+    assert res["final"]["effects"] == [] and res["candidates"] == []
+    assert res["final"]["nothing_missing"], res["final"]["verdict"]
+
+
+def test_a_thermal_drift_seen_by_a_displacement_pickoff_is_named():
+    # rig-085: the drift moves the push rod, so a sensor following it (a displacement pick-off)
+    # shows it too; once this was taken for a force trend and the drift went unnamed
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-085")
+    assert rec.truth["mechanisms"] == ["thermal_drift"]
+    assert rec.truth["params"]["sensor.pickoff"]["value"] == "displacement"
+    res = analyse(raw).result
+    assert res["final"]["effects"] == ["thermal_drift"], res["rejected"]
+    assert res["baseline"]["recalibrated"]["sensor_follows"]["value"] == "load"
+    f = res["findings"][0]
+    assert f["confidence"] >= 0.5
+    assert min(f["evidence"]["explained_share_heldout"].values()) > 0.5        # both channels
