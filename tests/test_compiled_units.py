@@ -86,6 +86,20 @@ def test_actuator_state_moves_between_engines():
     assert _drive(nb, 300, 400) != ref
 
 
+@pytest.mark.parametrize("drift", [(0.0, 0.0), (0.2, 0.01)])
+def test_a_compiled_actuator_resets_to_the_same_state(drift):
+    """reset() on a unit whose lists became arrays of one buffer (no drift: an empty array); a
+    prepared load pick-off exercises every branch of the settled start."""
+    kw = dict(ACTUATORS["everything"], **{"drift.offset": drift[0], "drift.rate": drift[1], "drift.curvature": 0.0,
+                                          "mechanics.pickoff": "load", "hysteresis.prepared": 60.0})
+    ref = _actuator(**kw)
+    act = compiled.compile_unit(_actuator(**kw))
+    act.advance(1.0, 1e-4)
+    act.reset()
+    ref.reset()
+    assert list(act.out) == list(ref.out) and ref.out[3] > 0.0
+
+
 def test_compiled_actuator_works_on_its_own_buffer():
     """The unit's lists become views of one buffer; replacing the delay line re-packs it."""
     act = compiled.compile_unit(_actuator(**ACTUATORS["everything"]))

@@ -318,7 +318,7 @@ class Actuator:
         f_out = self.frc[0] * self.creep.dc_gain() * x_h
         self.mech.settle(f_out)
         x = self.mech.dc_gain() * f_out
-        trend = self._drift_at(self.time) - (self.drift[0] if self.drift else 0.0)
+        trend = self._drift_at(self.time) - (self.drift[0] if len(self.drift) else 0.0)
         force = {0.0: f_out, 1.0: self.frc[2] * (x + trend), 2.0: f_out - self.frc[0] * x}[self.frc[1]]
         self.dly_buf[:] = [0.0] * len(self.dly_buf)
         self.dly[1] = 0.0
