@@ -199,14 +199,17 @@ def test_resume_after_interruption_recomputes_nothing_finished(cluster, serial, 
     out = tmp_path / "out"
 
     def interrupt(fraction, message=""):
-        if fraction is not None and fraction >= 0.25:
+        # at the first finished task (the engine's first tasks are single runs, before it knows how
+        # long a run takes); a later threshold raced the batching: 5 ms runs put the remaining 36
+        # into one batch, and a stop at 25 % came with all 40 written
+        if fraction is not None and fraction > 0:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
         sweep(spec, out, scheduler=cluster.address, progress=interrupt, report=False)
     first = read_results(out)
     done = first.num_rows
-    assert 10 <= done < 40 and (out / "results.parquet").exists()
+    assert 1 <= done < 40 and (out / "results.parquet").exists()
     seconds = dict(zip(first.column("index").to_pylist(), first.column("seconds").to_pylist()))
     with pytest.raises(UserError, match="--resume"):             # not silently overwritten
         sweep(spec, out, scheduler=cluster.address)
