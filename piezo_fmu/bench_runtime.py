@@ -7,7 +7,7 @@ checkout or libcosimpy those keys are ``None``.
 libcosim: where the time goes
 -----------------------------
 ``loop_libcosim_us_per_step`` / ``loop_libcosim_floor_us_per_step`` run ``libcosim_run`` on the
-SSD's fixed-step algorithm with ``numWorkerThreads="0"`` (:func:`libcosim_ssp`); the
+SSD's fixed-step algorithm with ``numWorkerThreads="0"`` (as :mod:`.ssp` writes it); the
 ``*_pool_*`` keys the same systems with libcosim's default worker pool (``--fixed-step``, what
 ``cosim_ssp_fixed_step_execution_create`` and libcosimpy's ``from_ssp_file(step_size=..)`` give).
 Measured 2026-11-22 on the 2-core VM while three CPU-bound processes of other jobs ran (load 5-6),
@@ -68,7 +68,7 @@ import tempfile
 import time
 from pathlib import Path
 
-__all__ = ["HOST_SRC", "RUNTIME_KEYS", "libcosim_ssp", "runtime_figures"]
+__all__ = ["HOST_SRC", "RUNTIME_KEYS", "runtime_figures"]
 
 # the runtime's figures (item 7); the C and libcosim ones are None without a compiler, the
 # repository's tests/host or libcosimpy
@@ -196,30 +196,6 @@ RING_SSD = """<?xml version="1.0" encoding="UTF-8"?>
 """
 
 
-def libcosim_ssp(ssp, out, workers=0) -> Path:
-    """A copy ``out`` of the SSP archive ``ssp`` whose fixed-step algorithm (the OSP annotation
-    ``osp:FixedStepAlgorithm``) has ``numWorkerThreads="workers"``: libcosim's worker pool for the
-    run (0: the FMUs are stepped on the calling thread; see the module docstring)."""
-    import xml.etree.ElementTree as ET
-    import zipfile
-
-    from .ssp import NS
-
-    with zipfile.ZipFile(ssp) as src, zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as dst:
-        for item in src.infolist():
-            data = src.read(item)
-            if item.filename == "SystemStructure.ssd":
-                root = ET.fromstring(data)
-                algorithms = root.findall(".//osp:FixedStepAlgorithm", NS)
-                if not algorithms:
-                    raise ValueError(f"{ssp}: no osp:FixedStepAlgorithm annotation in the SSD")
-                for alg in algorithms:
-                    alg.set("numWorkerThreads", str(int(workers)))
-                data = ET.tostring(root, encoding="utf-8", xml_declaration=True)
-            dst.writestr(item, data)
-    return Path(out)
-
-
 def _libcosim_figures(fmus, cfg, workdir):
     """libcosim driven from C: PiezoSystem.ssp and a ring of three pass-through FMUs, each with
     the SSD's algorithm at ``numWorkerThreads="0"`` and (``*_pool_*``) with libcosim's default
@@ -238,9 +214,9 @@ def _libcosim_figures(fmus, cfg, workdir):
                    f"-Wl,-rpath,{libdir}")
     if exe is None:
         return res
-    ssp = write_system_ssp(Path(workdir) / "PiezoSystem-default.ssp",
+    # the SSD asks for numWorkerThreads="0"; --fixed-step below runs the default pool
+    ssp = write_system_ssp(Path(workdir) / "PiezoSystem.ssp",
                            {n: fmus[n] for n in ("Actuator", "Sensor", "Compensator")}, step=H)
-    ssp = libcosim_ssp(ssp, Path(workdir) / "PiezoSystem.ssp", workers=0)
     ring = Path(workdir) / "ring"
     (ring / "resources").mkdir(parents=True, exist_ok=True)
     shutil.copyfile(fmus["PassThrough"], ring / "resources" / "PassThrough.fmu")

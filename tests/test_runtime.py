@@ -293,7 +293,6 @@ del ex, obs
 
 def test_libcosim_driven_from_c_agrees_with_libcosimpy(unpacked, built_fmus, tmp_path):
     libcosimpy = pytest.importorskip("libcosimpy", reason="libcosimpy (test dependency) is not installed")
-    from piezo_fmu.bench_runtime import libcosim_ssp
     from piezo_fmu.ssp import write_system_ssp
 
     libdir = Path(libcosimpy.__file__).parent / "libcosimc"
@@ -303,12 +302,11 @@ def test_libcosim_driven_from_c_agrees_with_libcosimpy(unpacked, built_fmus, tmp
     ssp = write_system_ssp(tmp_path / "PiezoSystem.ssp", built_fmus, step=step_ns * 1e-9)
     # the C run takes the SSD's algorithm with numWorkerThreads="0" (the FMUs stepped on its own
     # thread, as the bench runs it); libcosimpy below libcosim's default worker pool
-    inline = libcosim_ssp(ssp, tmp_path / "PiezoSystem-inline.ssp", workers=0)
-    proc = subprocess.run([str(exe), str(inline), str(step_ns), str(stop_ns)], capture_output=True, text=True,
+    proc = subprocess.run([str(exe), str(ssp), str(step_ns), str(stop_ns)], capture_output=True, text=True,
                           check=False, timeout=300, env={})
     assert proc.returncode == 0 and "status ok" in proc.stdout, proc.stdout[-1000:] + proc.stderr[-2000:]
     # a STEP_NS other than the SSD's step is refused, not run at the SSD's
-    wrong = subprocess.run([str(exe), str(inline), str(2 * step_ns), str(20 * step_ns)], capture_output=True,
+    wrong = subprocess.run([str(exe), str(ssp), str(2 * step_ns), str(20 * step_ns)], capture_output=True,
                            text=True, check=False, timeout=300, env={})
     assert wrong.returncode == 3 and "fail step" in wrong.stdout, wrong.stdout[-1000:]
     got = rows(proc.stdout)

@@ -189,7 +189,9 @@ def _padd(a, b):
 
 @lru_cache(maxsize=512)
 def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output"):
-    """Second-order sections of the whole linear chain after the hysteresis for one channel.
+    """Second-order sections of the whole linear chain after the hysteresis for one channel:
+    ``(front, sos, gain, dc)``, ``dc`` its static gain before the sensor's leakage (from the
+    continuous blocks, exact).
 
     The core's blocks, each discretised on its own as the core steps them (creep, then mechanics
     with the optional mode for ``x``; creep, then the force (through the mechanics for the load

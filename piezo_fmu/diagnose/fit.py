@@ -294,7 +294,8 @@ class Fitter:
 
     def quick(self, p: Params, drift=False):
         """Weighted training SSE with the weights held and each channel's gain and offset re-fitted
-        (and a drift polynomial on ``x`` when ``drift``): normal equations on cached sums."""
+        (and a drift polynomial on ``x``, and on ``us`` for a load pick-off, when ``drift``):
+        normal equations on cached sums."""
         self.n_eval += 1
         preds = [predict(r, self.dev, p, direct=True) for r in self.recs]
         sse = 0.0
