@@ -298,6 +298,7 @@ def _history(fitter, rc, struct, sat):
 
 
 THRESHOLD_SCALES = (0.3, 0.45, 0.7, 1.4)     # starting points of the threshold scale's fit (x the start)
+THRESHOLD_FITTED = 2                          # of them, the best screened are fitted
 
 
 def _threshold_scale(fitter, rc, struct, sat):
@@ -305,18 +306,22 @@ def _threshold_scale(fitter, rc, struct, sat):
     pattern, the voltage they sit at is the device's. The nominal scale comes from another stack
     and amplifier (or from the recording's span): a loop that bends at other voltages is ordinary,
     not a missing loop shape. A short fit from a few starting scales (weights, saturation and lag
-    re-fitted at each), then a joint fit from the best; kept when it beats the start clearly and
-    does not settle at the end of its range."""
+    re-fitted at each, after a screening with the weights re-solved), then a joint fit from the
+    best; kept when it beats the start clearly and does not settle at the end of its range."""
     p = rc.params
     if "u_norm" not in fitter.limits:
         rc.report["threshold_scale"] = {"identified": False, "why": "no range given"}
         return False
     lo, hi = fitter.limits["u_norm"]
-    trials = []
+    # screened with the weights re-solved at each scale (lag held); the two best are fitted
+    screen = []
     for k in THRESHOLD_SCALES:
         q = p.copy()
         q.u_norm = float(np.clip(p.u_norm * k, lo * 1.01, hi / 1.01))
-        trials.append(_fit(fitter, q, struct, ["tau"] + sat, 4))
+        r = fitter.varpro(q, struct)
+        screen.append((float(r @ r), k, q))
+    screen.sort(key=lambda s: s[0])
+    trials = [_fit(fitter, q, struct, ["tau"] + sat, 4) for _, _, q in screen[:THRESHOLD_FITTED]]
     best = min(trials, key=lambda fr: fr.cost)
     if best.cost >= fitter.cost(p):
         rc.report["threshold_scale"] = {"identified": False, "why": "no other scale fits better"}

@@ -151,9 +151,32 @@ def _plt():
     return plt
 
 
-def _decimate(t, *ys, n_max=20000):
-    step = max(1, int(math.ceil(t.size / n_max)))
-    return (t[::step],) + tuple(y[::step] for y in ys)
+def _decimate(t, *ys, n_max=3000):
+    """At most ``n_max`` points per line, for a figure about a thousand pixels wide: each of
+    ``n_max // 2`` bins of samples is drawn as its extremes (the earlier one at the bin's first
+    time, the later at its last), so the noise band and a spike look as in the full record,
+    where a plain stride would alias them."""
+    bins = n_max // 2
+    if t.size <= n_max:
+        return (t,) + tuple(ys)
+    size = t.size // bins
+    m = bins * size
+    tb = t[:m].reshape(bins, size)
+    out = [np.column_stack([tb[:, 0], tb[:, -1]]).ravel()]
+    rows = np.arange(bins)
+    for y in ys:
+        yb = y[:m].reshape(bins, size)
+        i_lo, i_hi = np.argmin(yb, axis=1), np.argmax(yb, axis=1)
+        out.append(np.column_stack([yb[rows, np.minimum(i_lo, i_hi)], yb[rows, np.maximum(i_lo, i_hi)]]).ravel())
+    return tuple(out)
+
+
+def _layout(fig, left=0.85, right=0.15, bottom=0.45, top=0.45, hspace=0.2, wspace=0.2):
+    """Fixed margins in inches (labels, suptitle), in place of ``tight_layout``, which draws the
+    whole figure once more to measure it (half of the figures' time on a long recording)."""
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h,
+                        hspace=hspace, wspace=wspace)
 
 
 def _save(fig, path, force):
@@ -215,7 +238,7 @@ def _figures(diag, sim_nom, sim_fin, out, force):
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("time [s]")
     fig.suptitle(f"Residual (measured - model) over time: {Path(r0.name).name}")
-    fig.tight_layout()
+    _layout(fig, hspace=0.12)
     figs["residual_time.png"] = _save(fig, out / "residual_time.png", force)
 
     # 2. residual spectrum before/after
@@ -244,7 +267,7 @@ def _figures(diag, sim_nom, sim_fin, out, force):
         ax.legend(fontsize=7)
         ax.grid(alpha=0.3, which="both")
     fig.suptitle("Residual spectrum before / after")
-    fig.tight_layout()
+    _layout(fig, bottom=0.55, wspace=0.32)
     figs["residual_spectrum.png"] = _save(fig, out / "residual_spectrum.png", force)
 
     # 3. measured vs simulated in the located windows: signals on top, residuals below
@@ -265,7 +288,7 @@ def _figures(diag, sim_nom, sim_fin, out, force):
             span = w["t1_s"] - w["t0_s"]
             pad = max(0.25 * span, 30 * r0.dt)
             sl = (t >= w["t0_s"] - pad) & (t <= w["t1_s"] + pad)
-            tt, yy, a, b = _decimate(t[sl], y[sl], nm0[c][sl], fi0[c][sl], n_max=6000)
+            tt, yy, a, b = _decimate(t[sl], y[sl], nm0[c][sl], fi0[c][sl])
             ax = axes[2 * i][j]
             ax.plot(tt, yy, color="k", lw=1.0, label="measured")
             ax.plot(tt, a, color="0.55", lw=0.9, ls="--", label="nominal (recalibrated)")
@@ -285,8 +308,8 @@ def _figures(diag, sim_nom, sim_fin, out, force):
                 ax2.legend(fontsize=7)
             if i == len(chans) - 1:
                 ax2.set_xlabel("time [s]")
-    fig.suptitle("Measured vs simulated where it matters, before (nominal) and after (final)")
-    fig.tight_layout()
+    fig.suptitle("Measured vs simulated where it matters,\nbefore (nominal) and after (final)", fontsize=11)
+    _layout(fig, left=0.95, bottom=0.55, top=0.8, hspace=0.45, wspace=0.28)
     figs["fit_before_after.png"] = _save(fig, out / "fit_before_after.png", force)
 
     # 4. residual over the operating range (command level and rate)
@@ -315,7 +338,7 @@ def _figures(diag, sim_nom, sim_fin, out, force):
             if j == 0:
                 ax.legend(fontsize=7)
     fig.suptitle("Where in the operating range the residual lives (10 quantile bins)")
-    fig.tight_layout()
+    _layout(fig, bottom=0.55, hspace=0.55, wspace=0.28)
     figs["operating_range.png"] = _save(fig, out / "operating_range.png", force)
     return figs
 

@@ -42,6 +42,8 @@ CONFIDENT = 0.5              # findings at or above this confidence are named; b
 # current limit got a shape named from 1.04 x the noise (rig-023)
 SHAPE_EXPLAINED = 0.7
 SHAPE_REMOVED = 2.0
+CREEP_BEFORE_DRIFT = 0.03  # a drift in both channels must explain this much more of the structured
+                           # residual (share, mean over channels) than a creep element
 
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
@@ -239,6 +241,74 @@ def _simpler(fitter, name, struct, s_new, fr, recal, step, dropped=()):
     return fr, dropped
 
 
+def _drift_both(tried):
+    """The passing thermal drift among ``tried`` that reaches both channels (a sensor on the push
+    rod: a pick-off the data did not identify), or ``None``."""
+    return next((t for t in tried if t["name"] == "thermal_drift" and t["passed"]
+                 and t["fit"].params.pick == "load" and "us" in t["cmp"]["channels"]), None)
+
+
+def _creep_before_drift(best, tried, struct, step, rnd):
+    """A drift that moves both channels competes with a slow creep element (both move both
+    channels; a creep element slower than the record grows with the stroke's integral, a trend
+    under a unipolar drive). When creep is already in the model, or passed beside the drift, and
+    explains within ``CREEP_BEFORE_DRIFT`` of the drift's share, creep is kept: it needs no
+    assumption about the pick-off, which the data did not identify."""
+    drift = _drift_both(tried)
+    creep = next((t for t in tried if t["name"] == "creep" and t["passed"]), None)
+    if best is not drift or creep is None:
+        return best
+    gap = _score(drift["cmp"], drift["name"]) - _score(creep["cmp"], creep["name"])
+    if gap > CREEP_BEFORE_DRIFT:
+        return best
+    what = "a further creep element" if "creep" in struct.effects else "creep"
+    step(f"round {rnd + 1}: {what} explains within {gap:.3f} of a drift that would need the sensor on the "
+         "push rod (a pick-off the data did not identify): creep kept")
+    return creep
+
+
+def _drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise, cctx, step):
+    """With creep and a drift that reaches both channels accepted, try the drift as one more creep
+    element (a slow element grows with the stroke's integral: a trend under a unipolar drive).
+    When that model is within the BIC threshold of the one with the drift (the same number of
+    parameters, or fewer), the drift is not needed: creep takes its place. Returns ``(p, struct,
+    findings)``."""
+    names = {f["name"] for f in findings}
+    if not {"creep", "thermal_drift"} <= names or current.pick != "load" or struct.creep_order >= 2:
+        return current, struct, findings
+    step("checking whether a further creep element explains the drift in both channels")
+    s_wo = struct.without("thermal_drift")
+    base = strip(current, s_wo, p_base.thresholds)
+    base.pick = p_base.pick
+    start = propose("creep", fitter, base, s_wo, cctx)
+    if start is None:
+        return current, struct, findings
+    s_sw = s_wo.with_effect("creep", 0, len(start.creep))
+    fr = fitter.fit(start, s_sw, max_nfev=10)
+    full = fitter.cost(current)
+    k = struct.n_params() - s_sw.n_params()
+    worth = fitter.n_eff * math.log(max(fr.cost, 1e-300) / max(full, 1e-300)) - k * math.log(max(fitter.n_eff, 2.0))
+    need = ACCEPT["dbic"]
+    if worth >= need:
+        step(f"the drift stays: creep in its place leaves a BIC {worth:.1f} worse")
+        return current, struct, findings
+    step(f"creep with {len(fr.params.creep)} elements explains the drift in both channels as well (BIC "
+         f"{worth:.1f} < {need:g} for the drift): creep kept, the drift dropped")
+    rejected.append({"effect": "thermal_drift",
+                     "why": f"a further creep element explains it as well (BIC difference {worth:.1f} < {need:g}); "
+                            "a drift in both channels would also need the sensor on the push rod"})
+    sets_new, _ = residual_sets(fitter, fr.params)
+    for f in findings:
+        if f["name"] == "creep":
+            f["after"] = fr.params
+            f["rmse_after"] = {c: float(np.sqrt(np.mean(v["heldout"] ** 2))) for c, v in sets_new.items()}
+            if f.get("rival", {}) and f["rival"].get("effect") == "thermal_drift":
+                f["alt_share"] = 0.0
+    findings = [f for f in findings if f["name"] != "thermal_drift"]
+    noise.update(noise_levels(fitter, fr.params)[0])
+    return fr.params, s_sw, findings
+
+
 def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, revisit=None, recal=None):
     """Forward selection with a backward check. Returns ``(p, struct, findings, candidates,
     rejected)``; findings and candidates carry their comparison statistics and ``confidence``.
@@ -303,7 +373,8 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         for i, (gain, name, start, alt) in enumerate(screened[:4]):
             # the best screened candidate, the next ones when they come close to it, and further ones
             # (down the screening order) as long as nothing tried so far passed
-            if gain <= 0 or (i >= 1 and gain < 0.4 * top and any(t["passed"] for t in tried)):
+            if gain <= 0 or (i >= 1 and gain < 0.4 * top and any(t["passed"] for t in tried)
+                             and not (name == "creep" and _drift_both(tried))):
                 continue
             if i >= 1 and fitter.out_of_time():
                 budget_note = "time budget reached: the weaker screened candidates were not fitted"
@@ -342,6 +413,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                          for t in tried]
             break
         best = max((t for t in tried if t["passed"]), key=lambda t: _score(t["cmp"], t["name"]))
+        best = _creep_before_drift(best, tried, struct, step, rnd)
         if best["name"] == "hysteresis_shape":
             removed = max(_removed(v) for v in best["cmp"]["channels"].values())
             explained = max(v["explained"] for v in best["cmp"]["channels"].values())
@@ -424,6 +496,9 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 for f in findings:
                     if f["name"] == name:
                         f["backward"] = cmp
+    if not fitter.out_of_time():
+        current, struct, findings = _drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise,
+                                                    cctx, step)
     accepted = {f["name"] for f in findings}
     for f in findings:
         # a rival that is itself accepted explained another part of the residual (two mechanisms),
