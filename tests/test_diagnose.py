@@ -578,6 +578,21 @@ def test_a_thermal_drift_seen_by_a_displacement_pickoff_is_named():
     assert min(f["evidence"]["explained_share_heldout"].values()) > 0.5        # both channels
 
 
+def test_a_drift_does_not_hide_where_the_thresholds_sit():
+    # rig-161: a PI device on other thresholds (dense below 20 V of a 49 V drive) with a thermal
+    # drift. Before the drift is in, the residual is mostly trend (few effective samples) and the
+    # better threshold scale is "not clearly better" (BIC gain 2.7); left at the start, the loop
+    # misfit was named as a finer loop beside the drift. The scale is asked again once the drift
+    # is in
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-161")
+    assert rec.truth["mechanisms"] == ["thermal_drift"]
+    res = analyse(raw).result
+    assert res["final"]["effects"] == ["thermal_drift"], res["rejected"]
+    assert res["baseline"]["recalibrated"]["threshold_scale_V"]["identified"]
+
+
 def test_a_slow_creep_element_is_not_called_a_drift():
     # synth-1053 (the recognition study's case): creep with two elements, 0.31 s and 3.6 s (the
     # slower as long as the record, so under a unipolar drive it grows almost like a trend), and
