@@ -593,6 +593,22 @@ def test_a_drift_does_not_hide_where_the_thresholds_sit():
     assert res["baseline"]["recalibrated"]["threshold_scale_V"]["identified"]
 
 
+def test_a_further_mode_at_the_devices_first_mode_is_recalibrated_not_named():
+    # rig-098: a drift on a device whose first mode (232 Hz, zeta 0.038) the recalibration's grid
+    # did not take; the search then found it as a "further mode" and named it beside the drift.
+    # Started from what the search found, the first mode explains it as well: ordinary physics
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-098")
+    assert rec.truth["mechanisms"] == ["thermal_drift"]
+    res = analyse(raw).result
+    assert res["final"]["effects"] == ["thermal_drift"], res["rejected"]
+    mode = res["baseline"]["recalibrated"]["first_mode_hz"]
+    assert mode["identified"]
+    assert mode["value"] == pytest.approx(rec.truth["params"]["mechanics.f1"]["value"], rel=0.03)
+    assert any(r["effect"] == "extra_resonance" and "first mode" in r["why"] for r in res["rejected"])
+
+
 def test_a_slow_creep_element_is_not_called_a_drift():
     # synth-1053 (the recognition study's case): creep with two elements, 0.31 s and 3.6 s (the
     # slower as long as the record, so under a unipolar drive it grows almost like a trend), and

@@ -196,7 +196,10 @@ def model_from_params(base, p: Params, sources: dict, dt=None):
     put("hysteresis", "scale", _num(total), fitted + " (sum of the weights: stroke per PI unit)")
     # full precision: weights of a poorly conditioned fit can cancel (+761, -761 um) and leave a
     # partial sum of 1e-7 that rounding to 8 digits would make 0 (not invertible; rig-083)
-    ws = [float(v) for v in (w / total)]
+    # and a partial sum the bounded fit left at its bound of ~0 (an operator the record hardly
+    # moves; rig-025) is lifted to 1e-9 of the stroke: the same loop, and an invertible model
+    partial = np.maximum(np.cumsum(w / total), 1e-9)
+    ws = [float(v) for v in np.diff(partial, prepend=0.0)]
     put("hysteresis", "weights", ws, fitted + " (bounded least squares, every partial sum > 0)")
     put("hysteresis", "saturation", _num(p.y_sat) if math.isfinite(p.y_sat) else math.inf,
         "diagnose: nominal saturation, scaled with the recalibrated stroke")

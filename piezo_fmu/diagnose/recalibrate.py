@@ -39,7 +39,7 @@ from .residuals import ACCEPT, full_residuals, residual_sets
 from .stats import compare, noise_level, tau_int
 from .varpro import solve_linear
 
-__all__ = ["PICKOFFS", "Recalibration", "recalibrate"]
+__all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "mode_at", "recalibrate"]
 
 PICKOFFS = ("stack", "contact", "load")
 MODE_RANGE = (100.0, 20000.0)        # [Hz] the first mode's search range
@@ -280,6 +280,40 @@ def _mode(fitter, rc, struct, sat):
         return True
     why = ("at the end of its search range" if edge else f"not visible in this recording (BIC gain {gain:.1f})")
     return _mode_not_identified(rc, p, why, f_nom, z_nom)
+
+
+def mode_at(fitter: Fitter, p, struct: Structure, f, zeta, without_items=()):
+    """The first mode started at ``f`` [Hz] and ``zeta`` (a further mode a candidate found), for each
+    pick-off the recorded channels allow, fitted with the ordinary parameters (but those of the
+    ordinary items ``without_items``, switched off in ``p``); the best fit, or ``None`` when it
+    settles at the end of its search range."""
+    chans = {c for r in fitter.recs for c in r.channels()}
+    picks = ("contact", "load") if "us" in chans else ("stack",)
+    gone = {n for it in without_items for n in ITEM_PARAMS[it]} | {"mech_f", "mech_zeta"}
+    free = [n for n in fitter.ordinary if n not in gone] + ["mech_f", "mech_zeta"]
+    lo, hi = fitter.bounds("mech_f")
+    best = None
+    for pick in picks:
+        q = p.copy()
+        q.pick = pick
+        q.set_mode(fitter.dev, f=float(np.clip(f, lo * 1.02, hi / 1.02)), zeta=float(np.clip(zeta, 0.004, 0.3)))
+        fr = fitter.fit(q, struct, free=free, max_nfev=10, held=True)
+        if best is None or fr.cost < best.cost:
+            best = fr
+    f_fit, z_fit = best.params.mode(fitter.dev)
+    if _edge(fitter, "mech_f", f_fit) or _edge(fitter, "mech_zeta", z_fit):
+        return None
+    return best
+
+
+def adopt_mode(fitter: Fitter, rc: Recalibration, p, why):
+    """Take the first mode of ``p`` into the recalibration (found after a finding)."""
+    if "mech_f" not in fitter.ordinary:
+        fitter.ordinary = fitter.ordinary + ["mech_f", "mech_zeta"]
+    rc.params = p
+    rc.report["first_mode"] = {"identified": True, "why": why}
+    rc.report["pickoff"] = {"value": p.pick, "identified": p.pick != "stack"}
+    rc.notes = [n for n in rc.notes if "first mode" not in n]
 
 
 def _history(fitter, rc, struct, sat):

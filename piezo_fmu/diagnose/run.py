@@ -186,9 +186,12 @@ def _analyse(raw, model, say, max_rounds, time_budget_s):
             return recal.params
         return None
 
+    ordinary_before = list(fitter.ordinary)
     p_final, struct_final, findings, candidates, rejected = select(fitter, p_base, struct_nom, noise, cctx, step,
                                                                    max_rounds, revisit=again, recal=recal)
     notes += [n for n in recal.notes if n not in notes]
+    if fitter.ordinary != ordinary_before:
+        revisited[0] = True          # an ordinary item found during the selection (a first mode)
     timing["selection_s"] = time.perf_counter() - t_start - timing["recalibration_s"]
     noise, noise_ar = noise_levels(fitter, p_final)
     # the recalibrated nominal model: every ordinary item found (also those found after a finding,

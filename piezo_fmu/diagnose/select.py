@@ -45,6 +45,12 @@ SHAPE_REMOVED = 2.0
 CREEP_BEFORE_DRIFT = 0.03  # a drift in both channels must explain this much more of the structured
                            # residual (share, mean over channels) than a creep element
 
+# a further mode where the device's first mode would do must beat it by "positive" evidence (a BIC
+# difference of 2, Kass & Raftery 1995), not by a tie (rig-179, displacement only: the two are
+# the same dynamics, BIC 0.1); less than the naming threshold: a further mode beside a first mode
+# above the Nyquist frequency is told apart only by how it reaches the two channels (rig-025: 5.1)
+MODE_EVIDENCE = 2.0
+
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
 
@@ -309,6 +315,48 @@ def _drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise, 
     return fr.params, s_sw, findings
 
 
+def _resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd):
+    """A further mode found while the device's own first mode was not identified (the residual
+    that hid it was another's, or the sample rate left it to the mechanism's search), or one that
+    takes the identified first mode's place, may be that first mode: ordinary physics, not a
+    missing mechanism (rig-098, 179: a "further mode" at the device's first mode, 232 and 441 Hz).
+    The first mode is fitted from the found frequency and damping, with the pick-offs the channels
+    allow; when it explains the data as well as the further mode (BIC with the effective sample
+    size, the further mode's parameters against the first mode's and its pick-off's, within
+    ``MODE_EVIDENCE``), the first mode is recalibrated and nothing is named. Returns the new
+    parameters or ``None``."""
+    from .recalibrate import ITEM_K, adopt_mode, drop, mode_at
+
+    if best["name"] != "extra_resonance" or recal is None or (
+            "mech_f" in fitter.ordinary and "mode" not in best["dropped"]):
+        return None
+    f, z = best["fit"].params.res
+    base = strip(best["fit"].params, struct, p_base.thresholds)
+    fr = mode_at(fitter, base, struct, f, z, without_items=best["dropped"])
+    if fr is None:
+        step(f"round {rnd + 1}: the first mode started at {f:.4g} Hz settles at the end of its range: "
+             "the further mode stays")
+        return None
+    # both without the ordinary items the further mode explained (``dropped``)
+    # (the pick-off counts only where there is a choice: with the displacement alone it is the stack)
+    k_mode = ITEM_K["mode"] - (0 if "us" in cctx["channels"] else 1)
+    k = (best["struct"].n_params() - struct.n_params()) - k_mode
+    worth = fitter.n_eff * math.log(max(fr.cost, 1e-300) / max(best["fit"].cost, 1e-300)) \
+        - k * math.log(max(fitter.n_eff, 2.0))
+    f1, z1 = fr.params.mode(fitter.dev)
+    if worth >= MODE_EVIDENCE:
+        step(f"round {rnd + 1}: the further mode at {f:.4g} Hz beats the first mode there (BIC {worth:.1f})")
+        return None
+    step(f"round {rnd + 1}: the mode at {f:.4g} Hz is the device's first mode ({f1:.4g} Hz, zeta {z1:.3g}, "
+         f"sensor on {fr.params.pick}; the further mode would gain BIC {worth:.1f}): recalibrated, not named")
+    adopt_mode(fitter, recal, fr.params, why=f"found in round {rnd + 1} where a further mode was searched "
+                                             f"(it explains the mode as well: BIC difference {worth:.1f})")
+    for item in best["dropped"]:
+        if item != "mode":
+            drop(fitter, recal, item, why="the first mode explains it")
+    return recal.params
+
+
 def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, revisit=None, recal=None):
     """Forward selection with a backward check. Returns ``(p, struct, findings, candidates,
     rejected)``; findings and candidates carry their comparison statistics and ``confidence``.
@@ -414,6 +462,15 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             break
         best = max((t for t in tried if t["passed"]), key=lambda t: _score(t["cmp"], t["name"]))
         best = _creep_before_drift(best, tried, struct, step, rnd)
+        as_mode = _resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd)
+        if as_mode is not None:
+            rejected.append({"effect": "extra_resonance", "why": "the device's own first mode, which the "
+                             "recalibration had not identified: taken into the recalibration"})
+            current = fitter.fit(as_mode, struct, max_nfev=10).params
+            recal.params = current
+            noise.update(noise_levels(fitter, current)[0])
+            sets_cur, _ = residual_sets(fitter, current)
+            continue
         if best["name"] == "hysteresis_shape":
             removed = max(_removed(v) for v in best["cmp"]["channels"].values())
             explained = max(v["explained"] for v in best["cmp"]["channels"].values())
