@@ -594,9 +594,10 @@ def test_a_drift_does_not_hide_where_the_thresholds_sit():
 
 
 def test_a_further_mode_at_the_devices_first_mode_is_recalibrated_not_named():
-    # rig-098: a drift on a device whose first mode (232 Hz, zeta 0.038) the recalibration's grid
-    # did not take; the search then found it as a "further mode" and named it beside the drift.
-    # Started from what the search found, the first mode explains it as well: ordinary physics
+    # rig-098: a drift on a device whose first mode (232 Hz, zeta 0.038) the recalibration placed
+    # elsewhere; the search then found it as a "further mode" that took the first mode's place and
+    # named it beside the drift. Started from what the search found, the first mode explains it
+    # as well: ordinary physics
     from piezo_fmu.diagnose.run import analyse
 
     rec, raw = _rig_recording("rig-098")

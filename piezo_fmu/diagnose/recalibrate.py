@@ -98,8 +98,8 @@ def recalibrate(fitter: Fitter, p_start, struct: Structure, step) -> Recalibrati
 
 def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
     """Try every ordinary item not identified yet (first mode and pick-off, amplifier order,
-    sampling lags, the thresholds' voltage scale) on ``rc.params`` with the mechanisms of ``struct`` in; update ``rc`` in place and
-    return whether anything changed. The selection calls it again after each finding: a mechanism
+    sampling lags, the thresholds' voltage scale) on ``rc.params`` with the mechanisms of ``struct``
+    in; update ``rc`` in place and return whether anything changed. The selection calls it again after each finding: a mechanism
     that dominated the residual may have hidden an ordinary item."""
     sat = ["y_sat"] if struct.saturation else []
     changed = False
@@ -212,10 +212,7 @@ def _mode(fitter, rc, struct, sat):
     three) and what the sensor follows; kept when the data see them."""
     p = rc.params
     chans = sorted({c for r in fitter.recs for c in r.channels()})
-    # a stack's first mode moves the push rod against the sensor: a sensor in the load path (the
-    # contact force, or the load spring's) sees it. A mode in the displacement alone, with a sensor
-    # channel recorded, sits after the sensor: a further mode (extra_resonance), not this one
-    picks = ("contact", "load") if "us" in chans else ("stack",)
+    picks = _mode_picks(fitter)
     # a further mode found already may sit elsewhere once the first mode is in: both places
     places = ("output", "drive") if (p.res is not None and "us" in chans) else (p.res_at,)
     f_nom, z_nom = p.mode(fitter.dev)
@@ -282,13 +279,20 @@ def _mode(fitter, rc, struct, sat):
     return _mode_not_identified(rc, p, why, f_nom, z_nom)
 
 
+def _mode_picks(fitter):
+    """The pick-offs a first mode is tried with. A stack's first mode moves the push rod against
+    the sensor: a sensor in the load path (the contact force, or the load spring's) sees it. A mode
+    in the displacement alone, with a sensor channel recorded, sits after the sensor: a further
+    mode (extra_resonance), not this one."""
+    return ("contact", "load") if any("us" in r.channels() for r in fitter.recs) else ("stack",)
+
+
 def mode_at(fitter: Fitter, p, struct: Structure, f, zeta, without_items=()):
     """The first mode started at ``f`` [Hz] and ``zeta`` (a further mode a candidate found), for each
     pick-off the recorded channels allow, fitted with the ordinary parameters (but those of the
     ordinary items ``without_items``, switched off in ``p``); the best fit, or ``None`` when it
     settles at the end of its search range."""
-    chans = {c for r in fitter.recs for c in r.channels()}
-    picks = ("contact", "load") if "us" in chans else ("stack",)
+    picks = _mode_picks(fitter)
     gone = {n for it in without_items for n in ITEM_PARAMS[it]} | {"mech_f", "mech_zeta"}
     free = [n for n in fitter.ordinary if n not in gone] + ["mech_f", "mech_zeta"]
     lo, hi = fitter.bounds("mech_f")

@@ -464,8 +464,8 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         best = _creep_before_drift(best, tried, struct, step, rnd)
         as_mode = _resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd)
         if as_mode is not None:
-            rejected.append({"effect": "extra_resonance", "why": "the device's own first mode, which the "
-                             "recalibration had not identified: taken into the recalibration"})
+            rejected.append({"effect": "extra_resonance", "why": "the device's own first mode: refitted as "
+                             "that mode from where the search found it, taken into the recalibration"})
             current = fitter.fit(as_mode, struct, max_nfev=10).params
             recal.params = current
             noise.update(noise_levels(fitter, current)[0])
