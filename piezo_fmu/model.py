@@ -88,7 +88,15 @@ SCHEMA = {
                                     math.inf),
                    "prepared": _f("V", "nonneg", "the stack's memory at the start: 0 relaxed; > 0 the memory "
                                                  "of a sweep up to this stack voltage and back to rest before "
-                                                 "t0 (a device exercised before the run)", 0.0)},
+                                                 "t0 (a device exercised before the run)", 0.0),
+                   "cells_up": Spec("1", "floats", "finite", "Preisach term (beyond the paper): input at which each "
+                                    "Krasnosel'skii-Pokrovskii cell has switched up, in units of u_norm", []),
+                   "cells_down": Spec("1", "floats", "finite", "input at which each KP cell has switched down "
+                                      "(cells_up - cells_down >= cells_width), in units of u_norm", []),
+                   "cells_width": Spec("1", "floats", "positive", "ramp width of each KP cell's switching, in "
+                                       "units of u_norm", []),
+                   "cells_weights": Spec("1", "floats", "finite", "weight of each KP cell (output in units of "
+                                         "scale, added to the PI's; any sign)", [])},
     "creep": {
         "gains": Spec("1", "floats", "nonneg", "creep element gains relative to the hysteretic stroke", []),
         "time_constants": Spec("s", "floats", "positive", "creep element time constants", []),

@@ -117,7 +117,7 @@ class SimResult:
 
 
 def closed_loop(n, h, t0, k0, rec_every, ctrl_every, xref, use_ext, noise,
-                amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
+                amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k, kp_c, kp_s,
                 cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, frc,
                 me_phi, me_g, me_cd, me_xs, me_tmp, drift, act_out, act_time,
                 sen, sen_s, cfg, ref, gains, pid_s, inv_r, inv_w, inv_z, inv_k,
@@ -144,7 +144,7 @@ def closed_loop(n, h, t0, k0, rec_every, ctrl_every, xref, use_ext, noise,
     rcount = rec_every
     for k in range(n):
         ta += h
-        actuator_step(uc, h, ta, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
+        actuator_step(uc, h, ta, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k, kp_c, kp_s,
                       cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, frc,
                       me_phi, me_g, me_cd, me_xs, me_tmp, drift, act_out)
         count -= 1
@@ -201,7 +201,7 @@ def _unit_args(act, sen, comp, as_arrays):
 
     act_time = [act.time]
     a = [arr(act.amp), arr(act.amp_s), arr(act.dly), arr(act.dly_buf), arr(act.pi_r), arr(act.pi_w),
-         arr(act.pi_z), arr(act.pi_k), arr(cr.phi), arr(cr.g),
+         arr(act.pi_z), arr(act.pi_k), arr(act.kp_c), arr(act.kp_s), arr(cr.phi), arr(cr.g),
          arr(cr.cd), arr(cr.xs), arr(cr.tmp), arr(act.frc),
          arr(me.phi), arr(me.g), arr(me.cd), arr(me.xs), arr(me.tmp),
          arr(act.drift), arr(act.out), arr(act_time)]
@@ -219,10 +219,11 @@ def _write_back(act, sen, comp, a, s, c):
     act.dly[:] = a[2].tolist()
     act.dly_buf[:] = a[3].tolist()
     act.pi_z[:] = a[6].tolist()
-    cr.xs[:] = a[11].tolist()
-    me.xs[:] = a[17].tolist()
-    act.out[:] = a[20].tolist()
-    act.time = float(a[21][0])
+    act.kp_s[:] = a[9].tolist()
+    cr.xs[:] = a[13].tolist()
+    me.xs[:] = a[19].tolist()
+    act.out[:] = a[22].tolist()
+    act.time = float(a[23][0])
     sen.sen_s[:] = s[1].tolist()
     comp.cfg[:] = c[0].tolist()
     comp.pid_s[:] = c[3].tolist()

@@ -40,6 +40,10 @@ ACTUATORS = {
     "contact pick-off": {"mechanics.pickoff": "contact", "amplifier.tau_2": 1e-4, "resonance.f_n": 900.0},
     "mode on the drive": {"resonance.f_n": 700.0, "resonance.position": "drive", "creep.gains": [0.05],
                           "creep.time_constants": [0.2]},
+    # KP cells over -0.2..4.6 (u_norm units: -6..138 V), both signs of weight, a prepared start
+    "KP cells": {"hysteresis.cells_up": [1.0, 2.2, 4.6, 0.4], "hysteresis.cells_down": [-0.2, 1.0, 1.0, 0.1],
+                 "hysteresis.cells_width": [0.6, 0.4, 1.2, 0.3], "hysteresis.cells_weights": [0.2, -0.05, 0.1, 0.07],
+                 "hysteresis.prepared": 60.0, "hysteresis.saturation": 20.0},
 }
 
 

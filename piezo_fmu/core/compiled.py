@@ -27,7 +27,7 @@ import types
 from functools import lru_cache
 
 
-from . import control, hysteresis, linear, plant
+from . import control, hysteresis, linear, plant, preisach
 from .control import compensator_step
 from .plant import actuator_step
 
@@ -38,14 +38,15 @@ ENGINES = {"python": 0, "numba": 1}     # Integer codes of the FMUs' simulation.
 
 # callees before callers: each is compiled with the compiled versions of those before it
 KERNEL_ORDER = (
-    (hysteresis, "pi_tail"), (hysteresis, "pi_step"), (plant, "amp_step"), (linear, "lti_advance"),
+    (hysteresis, "pi_tail"), (hysteresis, "pi_step"), (preisach, "kp_step"), (plant, "amp_step"),
+    (linear, "lti_advance"),
     (control, "reference_value"), (control, "pid_step"),
     (plant, "actuator_step"), (plant, "sensor_step"), (control, "compensator_step"),
 )
 
 # the buffer regions of the runners, in :func:`~.plant.actuator_step` / :func:`~.control.compensator_step`
 # argument order
-ACTUATOR_REGIONS = ("amp", "amp_s", "dly", "dly_buf", "pi_r", "pi_w", "pi_z", "pi_k", "cr_phi",
+ACTUATOR_REGIONS = ("amp", "amp_s", "dly", "dly_buf", "pi_r", "pi_w", "pi_z", "pi_k", "kp_c", "kp_s", "cr_phi",
                     "cr_g", "cr_cd", "cr_xs", "cr_tmp", "frc", "me_phi", "me_g", "me_cd",
                     "me_xs", "me_tmp", "drift", "out")
 COMPENSATOR_REGIONS = ("cfg", "ref", "gains", "pid_s", "inv_r", "inv_w", "inv_z", "inv_k",
@@ -72,7 +73,7 @@ def actuator_run(uc, h, n, t, buf, o):
                       buf[o[8]:o[9]], buf[o[9]:o[10]], buf[o[10]:o[11]], buf[o[11]:o[12]],
                       buf[o[12]:o[13]], buf[o[13]:o[14]], buf[o[14]:o[15]], buf[o[15]:o[16]],
                       buf[o[16]:o[17]], buf[o[17]:o[18]], buf[o[18]:o[19]], buf[o[19]:o[20]],
-                      buf[o[20]:o[21]])
+                      buf[o[20]:o[21]], buf[o[21]:o[22]], buf[o[22]:o[23]])
     return t
 
 

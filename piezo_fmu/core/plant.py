@@ -14,7 +14,9 @@ Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made 
   stage then sees ``y``'s mean over the step held (exact for ``y``, second-order accurate in ``h``
   for ``ua``).
 * Stack (eq. 1 with hysteresis): the free stroke ``x_h = scale * Pi[ua / u_norm]`` (beyond the
-  paper, optionally saturating at high field: ``x_h / (1 + |x_h| / y_sat)``); the generated
+  paper, optionally plus a Preisach term of KP cells, ``scale * K[ua / u_norm]``
+  (:mod:`.preisach`: loop features tied to absolute voltages), and saturating at high field:
+  ``x_h / (1 + |x_h| / y_sat)``); the generated
   force on the push rod is ``F_out = k_a x_h`` (eq. 5: ``k_a n d33 ua`` in the linear case).
 * Mechanics (eq. 4): ``m x'' + c x' + (k_a + k_f) x = F_out``, optionally followed by a further
   mechanical mode (``extra_resonance``; or that mode on the drive, before the mechanics, where
@@ -42,6 +44,7 @@ import numpy as np
 
 from .buffers import pack
 from .hysteresis import PrandtlIshlinskii, pi_load, pi_save, pi_state, pi_step, pi_table
+from .preisach import KPCells, kp_relax, kp_step
 from .linear import LinearSystem, as_floats, lti_advance, same_step
 
 EPS0 = 8.8541878128e-12  # vacuum permittivity [F/m]
@@ -71,7 +74,7 @@ def amp_step(ua, target, tau, slew, h, decay):
     return target - e * decay
 
 
-def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k,
+def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k, kp_c, kp_s,
                   cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, frc,
                   me_phi, me_g, me_cd, me_xs, me_tmp, drift, out):
     """One internal step of the actuator with the command ``uc`` [V] held over ``h`` [s].
@@ -81,7 +84,8 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     (tau_2/h)(1 - decay_2)); ``amp_s`` = [ua, y] (``y`` the input stage's output);
     ``dly`` = [n_delay_steps, head] (delay line of the command, ``dly_buf`` its ring buffer);
     ``pi_k`` = [1/u_norm, scale, 1/saturation] (strain saturation ``x_h / (1 + |x_h| / y_sat)``,
-    0 = none); ``frc`` = [k_a * 1e-6 [N/um], pick-off code (0 stack, 1 load, 2 contact), k_f * 1e-6 [N/um]];
+    0 = none); ``kp_c``, ``kp_s`` = the KP cells' table and states (:mod:`.preisach`; empty: none),
+    added to the PI's output before the scale; ``frc`` = [k_a * 1e-6 [N/um], pick-off code (0 stack, 1 load, 2 contact), k_f * 1e-6 [N/um]];
     ``drift`` = polynomial coefficients of an additive displacement drift in time [um, um/s, ...]
     (with the load pick-off the force follows the drift's change too: it moves the push rod).
     Writes ``out`` = [x [um], F [N] (the sensed force), ua [V], x_h [um]].
@@ -105,7 +109,8 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
         target = amp[4]
     ua = amp_step(amp_s[0], target, amp[1], amp[2], h, amp[5])
     amp_s[0] = ua
-    x_h = pi_k[1] * pi_step(ua * pi_k[0], pi_r, pi_w, pi_z)
+    v = ua * pi_k[0]
+    x_h = pi_k[1] * (pi_step(v, pi_r, pi_w, pi_z) + kp_step(v, kp_c, kp_s))
     if pi_k[2] != 0.0:
         x_h = x_h / (1.0 + abs(x_h) * pi_k[2])
     x_free = lti_advance(cr_phi, cr_g, cr_cd, cr_xs, x_h, cr_tmp)
@@ -139,6 +144,7 @@ class Actuator:
     tau_2 : time constant of a first-order input stage before the output stage [s] (0: none);
     delay : command latency [s] (resolved to the internal step);
     hysteresis : :class:`PrandtlIshlinskii` from ua [V] to free stroke [um];
+    cells : :class:`~.preisach.KPCells` added to the PI (same normalised input, same scale), or None;
     saturation : strain saturation ``y_sat`` [um]: ``x_h -> x_h / (1 + |x_h| / y_sat)`` (``inf``: none);
     prepared : stack voltage [V] of a sweep before ``t0`` whose memory the device starts with (0: relaxed);
     creep_gains, creep_taus : creep elements (dimensionless gains, time constants [s]);
@@ -157,7 +163,7 @@ class Actuator:
     def __init__(self, *, k_amp, R, C_a, u_min, u_max, hysteresis: PrandtlIshlinskii,
                  m, c, k_a, k_f, saturation=math.inf, I_max=math.inf, delay=0.0, creep_gains=(), creep_taus=(),
                  resonance=None, drift=(), max_step=1e-4, tau_2=0.0, pickoff="stack", resonance_at="output",
-                 prepared=0.0):
+                 prepared=0.0, cells: KPCells | None = None):
         self.k_amp, self.R, self.C_a = float(k_amp), float(R), float(C_a)
         self.u_min, self.u_max, self.I_max = float(u_min), float(u_max), float(I_max)
         self.delay = float(delay)
@@ -183,6 +189,9 @@ class Actuator:
         self.pi_w = pi_table(hysteresis.thresholds, hysteresis.weights)
         self.pi_z = pi_state(hysteresis.n)
         self.pi_k = [1.0 / hysteresis.in_scale, hysteresis.out_scale, 1.0 / self.saturation]
+        self.cells = cells if cells is not None else KPCells()
+        self.kp_c = self.cells.table()
+        self.kp_s = [0.0] * self.cells.m
         self.creep = LinearSystem(*creep_tf(self.creep_gains, self.creep_taus))
         self.k_force = self.k_a * 1e-6
         self.frc = [self.k_force, float(PICKOFFS[pickoff]), self.k_f * 1e-6]
@@ -208,14 +217,14 @@ class Actuator:
         cr, me = self.creep, self.mech
         if self._run is not None:
             buf, o, v = pack([self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w,
-                              self.pi_z, self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.frc,
-                              me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out])
+                              self.pi_z, self.pi_k, self.kp_c, self.kp_s, cr.phi, cr.g, cr.cd, cr.xs,
+                              cr.tmp, self.frc, me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out])
             (self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w, self.pi_z,
-             self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.frc, me.phi, me.g, me.cd, me.xs, me.tmp,
-             self.drift, self.out) = v
+             self.pi_k, self.kp_c, self.kp_s, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.frc, me.phi, me.g,
+             me.cd, me.xs, me.tmp, self.drift, self.out) = v
             self._packed = (buf, o)
         self._args = (self.amp, self.amp_s, self.dly, self.dly_buf, self.pi_r, self.pi_w, self.pi_z,
-                      self.pi_k, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.frc,
+                      self.pi_k, self.kp_c, self.kp_s, cr.phi, cr.g, cr.cd, cr.xs, cr.tmp, self.frc,
                       me.phi, me.g, me.cd, me.xs, me.tmp, self.drift, self.out)
 
     def use_runner(self, run):
@@ -308,12 +317,15 @@ class Actuator:
         self.amp_s[1] = 0.0
         for i in range(len(self.pi_z)):
             self.pi_z[i] = 0.0
-        x_h = 0.0
+        x_h = self.pi_k[1] * kp_relax(self.kp_c, self.kp_s)
         if self.prepared > 0.0:
-            pi_step(self.prepared * self.pi_k[0], self.pi_r, self.pi_w, self.pi_z)
-            x_h = self.pi_k[1] * pi_step(0.0, self.pi_r, self.pi_w, self.pi_z)
-            if self.pi_k[2] != 0.0:
-                x_h = x_h / (1.0 + abs(x_h) * self.pi_k[2])
+            top = self.prepared * self.pi_k[0]
+            pi_step(top, self.pi_r, self.pi_w, self.pi_z)
+            kp_step(top, self.kp_c, self.kp_s)
+            x_h = self.pi_k[1] * (pi_step(0.0, self.pi_r, self.pi_w, self.pi_z)
+                                  + kp_step(0.0, self.kp_c, self.kp_s))
+        if self.pi_k[2] != 0.0:
+            x_h = x_h / (1.0 + abs(x_h) * self.pi_k[2])
         self.creep.settle(x_h)
         f_out = self.frc[0] * self.creep.dc_gain() * x_h
         self.mech.settle(f_out)
@@ -330,6 +342,7 @@ class Actuator:
     def get_state(self):
         """Complete state as plain Python data (JSON-serialisable)."""
         return {"time": self.time, "ua": float(self.amp_s[0]), "y2": float(self.amp_s[1]), "z": as_floats(pi_save(self.pi_r, self.pi_z)),
+                "kp": as_floats(self.kp_s),
                 "creep": as_floats(self.creep.xs), "mech": as_floats(self.mech.xs),
                 "dly": as_floats(self.dly), "dly_buf": as_floats(self.dly_buf), "out": as_floats(self.out),
                 "h": self._h}
@@ -339,6 +352,10 @@ class Actuator:
         self.amp_s[0] = float(s["ua"])
         self.amp_s[1] = float(s.get("y2", 0.0))
         pi_load(self.pi_r, self.pi_w, self.pi_z, s["z"])
+        kp = [float(v) for v in s.get("kp", [])]
+        if len(kp) != len(self.kp_s):
+            raise ValueError(f"actuator state has {len(kp)} KP cell states, the unit has {len(self.kp_s)} cells")
+        self.kp_s[:] = kp
         self.creep.xs[:] = [float(v) for v in s["creep"]]
         self.mech.xs[:] = [float(v) for v in s["mech"]]
         if s["h"] is not None:

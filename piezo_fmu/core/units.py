@@ -11,8 +11,9 @@ from .control import Compensator
 from .hysteresis import PrandtlIshlinskii
 from .linear import is_hurwitz
 from .plant import Actuator, Sensor
+from .preisach import KPCells, cells_problem
 
-__all__ = ["hysteresis_from", "actuator_from", "sensor_from", "compensator_from", "check_sections"]
+__all__ = ["hysteresis_from", "cells_from", "actuator_from", "sensor_from", "compensator_from", "check_sections"]
 
 
 def check_sections(sections) -> list:
@@ -45,6 +46,12 @@ def check_sections(sections) -> list:
         if problem:
             key = "weights" if "weight" in problem else "thresholds"
             problems.append(f"{sec}.{key}: {problem}")
+    h = sections.get("hysteresis")
+    if h is not None:
+        problem = cells_problem(*(h.get(f"cells_{k}", []) for k in ("up", "down", "width", "weights")))
+        if problem:
+            key = problem.split(":")[0] if problem.startswith("cells_") else "cells_up"
+            problems.append(f"hysteresis.{key}: {problem}")
     cr = sections.get("creep")
     if cr is not None and len(cr["gains"]) != len(cr["time_constants"]):
         problems.append(f"creep.time_constants: has {len(cr['time_constants'])} entries but creep.gains "
@@ -73,6 +80,12 @@ def hysteresis_from(sections, name="hysteresis") -> PrandtlIshlinskii:
     return PrandtlIshlinskii(s["thresholds"], s["weights"], s["u_norm"], s["scale"])
 
 
+def cells_from(sections, name="hysteresis") -> KPCells:
+    """The device's KP cells (:mod:`.preisach`; none when the model file lists none)."""
+    s = sections[name]
+    return KPCells(*(s.get(f"cells_{k}", ()) for k in ("up", "down", "width", "weights")))
+
+
 def actuator_from(sections) -> Actuator:
     a, me = sections["amplifier"], sections["mechanics"]
     cr = sections.get("creep", {})
@@ -88,7 +101,7 @@ def actuator_from(sections) -> Actuator:
         pickoff=me.get("pickoff", "stack"), resonance_at=res.get("position", "output"),
         hysteresis=hysteresis_from(sections),
         saturation=sections["hysteresis"].get("saturation", float("inf")),
-        prepared=sections["hysteresis"].get("prepared", 0.0),
+        prepared=sections["hysteresis"].get("prepared", 0.0), cells=cells_from(sections),
         m=me["m"], c=me["c"], k_a=me["k_a"], k_f=me["k_f"],
         creep_gains=cr.get("gains", []), creep_taus=cr.get("time_constants", []),
         resonance=(f_n, res.get("zeta", 0.05)) if f_n > 0 else None,
