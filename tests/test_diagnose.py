@@ -68,7 +68,11 @@ def test_engine_replays_the_monolithic_model_with_every_mechanism_on(pickoff, po
                         ("amplifier", "tau_2", 2e-4), ("mechanics", "m", 8.6), ("mechanics", "pickoff", pickoff),
                         ("resonance", "position", position), ("sensor", "lag", 2e-4),
                         # a device exercised up to 40 V before the run starts with that memory
-                        ("hysteresis", "prepared", 40.0)):
+                        ("hysteresis", "prepared", 40.0),
+                        # KP cells beside the PI (hysteresis_shape), one straddling the rest voltage
+                        ("hysteresis", "cells_up", [0.1, 0.16, 0.12]), ("hysteresis", "cells_down", [-0.05, 0.08, 0.02]),
+                        ("hysteresis", "cells_width", [0.1, 0.05, 0.08]),
+                        ("hysteresis", "cells_weights", [0.3, -0.1, 0.2])):
         m.set(sec, key, v, "test")
     m.check()
     dt = 1e-4
@@ -103,6 +107,36 @@ def test_a_prepared_start_is_the_core_operators_after_the_preparation_sweep(v0):
     assert np.allclose(operators(ua, p).T, ref, atol=1e-12)
     p.prep = 0.0                                                   # relaxed: the default
     assert np.array_equal(initial_state(v0 * p.u_norm, p), np.zeros(r.size))
+
+
+def test_the_linear_solve_recovers_the_weights_of_kp_cells():
+    # the cells' weights (any sign) are solved with the PI's, exactly, from wrong starting values
+    from piezo_fmu.core.preisach import grid_cells
+    from piezo_fmu.diagnose.varpro import solve_linear
+
+    m = load_model()
+    dt = 1e-3
+    t = np.arange(8001) * dt
+    u = 4.0 + 3.5 * np.sin(2 * np.pi * 1.0 * t) * np.exp(-t / 4.0) - 3.5 * np.exp(-t / 0.3)
+    dev = device_from_model(m)
+    true = params_from_model(m, dt)
+    true.y_sat = math.inf
+    true.cells = np.array(grid_cells(-0.1, 1.5, 4))
+    true.cell_w = np.random.default_rng(4).normal(0.0, 0.2, true.n_cells)
+    rec = Recording("a", t, dt, u, None, None, np.zeros(t.size, bool))
+    pr = predict(rec, dev, true)
+    rec = Recording("a", t, dt, u, pr["x"], pr["us"], np.zeros(t.size, bool))
+    p = true.copy()
+    p.cell_w = np.zeros(p.n_cells)
+    p.weights = p.weights * 0.7
+    lam = {"x": 1.0 / np.var(rec.x), "us": 1.0 / np.var(rec.us)}
+    solve_linear([rec], dev, p, lam, fit_sensor_gain=False)
+    got = predict(rec, dev, p)
+    assert np.max(np.abs(got["x"] - pr["x"])) < 1e-6 * np.ptp(pr["x"])
+    # the cells carry a visible part of the stroke, so the recovery above can fail
+    without = true.copy()
+    without.cell_w = np.zeros(true.n_cells)
+    assert np.max(np.abs(predict(rec, dev, without)["x"] - pr["x"])) > 0.01 * np.ptp(pr["x"])
 
 
 @pytest.mark.parametrize("tau_leak", [math.inf, 3.0])

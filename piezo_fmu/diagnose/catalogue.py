@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.preisach import grid_cells
 from .engine import amplifier_output, chain, lowpass, predict
 from .fit import Fitter, Structure
 from .stats import psd
@@ -187,16 +188,55 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
             return None
         return p.copy()          # linear: screened by Fitter.quick(drift=True), fitted exactly
     if name == "hysteresis_shape":
-        if "hysteresis_shape" in struct.effects or struct.refined:
+        if struct.refined:
             return None
-        r = np.asarray(p.thresholds, float)
-        mids = 0.5 * (r[1:] + r[:-1])
-        q = p.copy()
-        q.thresholds = np.sort(np.concatenate([r, mids]))
-        q.weights = np.zeros(q.thresholds.size)
-        fitter.varpro(q, struct, gn_iter=2)          # the weights are linear: solve them exactly
-        return q
+        if "hysteresis_shape" in struct.effects:
+            # a named shape may ask for a finer grid of cells (as creep for a further element)
+            if 0 < p.n_cells < SHAPE_GRID_FINE * (SHAPE_GRID_FINE + 1) // 2:
+                return finer_loop(fitter, p, struct, SHAPE_GRID_FINE)
+            return None
+        return finer_loop(fitter, p, struct)
     return None
+
+
+SHAPE_GRID = 6        # steps of the KP cells' Preisach grid over the recorded stack voltages (21 cells)
+SHAPE_GRID_FINE = 8   # the finer grid a named shape may ask for next (36 cells)
+
+
+def finer_loop(fitter: Fitter, p, struct, steps=SHAPE_GRID):
+    """``p`` with a loop that can draw more: the play operators' thresholds plus their midpoints
+    (more shape of the same kind; once) and KP cells on a ``steps``-step Preisach grid over the
+    normalised stack voltages the recordings reach (features tied to absolute voltages: a loop
+    width that changes with the level, a band of switching domains, a high-field knee), every
+    weight solved exactly."""
+    r = np.asarray(p.thresholds, float)
+    q = p.copy()
+    if not p.n_cells:
+        q.thresholds = np.sort(np.concatenate([r, 0.5 * (r[1:] + r[:-1])]))
+        q.weights = np.zeros(q.thresholds.size)
+    q.cells = q.cell_w = None
+    q.cells_held, q.cell_scale = False, 1.0
+    v = np.concatenate([rp.ua for rp in fitter.replays(q)]) / q.u_norm
+    lo, hi = min(float(v.min()), 0.0), float(v.max())
+    if hi - lo > 1e-9:
+        pad = 1e-6 * (hi - lo)
+        q.cells = np.array(grid_cells(lo - pad, hi + pad, steps))
+        q.cell_w = np.zeros(q.n_cells)
+        # a cell the recordings barely move is a constant (the offset's) or nearly so, and a
+        # weight on it only shifts the stroke the saturation sees: the Gauss-Newton steps of the
+        # saturation then overshoot (rig-052). Only cells that switch by a tenth or more stay
+        n = len(q.thresholds)
+        swing = np.max([np.ptp(rp.z[n:], axis=1) for rp in fitter.replays(q)], axis=0)
+        keep = swing >= 0.2
+        q.cells = q.cells[:, keep] if keep.any() else None
+        q.cell_w = np.zeros(int(keep.sum())) if keep.any() else None
+    fitter.varpro(q, struct, gn_iter=2)          # the weights are linear: solve them exactly
+    return q
+
+
+def shape_size(p, nominal_thresholds):
+    """Linear parameters a finer loop adds to the nominal one: operators and KP cells."""
+    return len(p.thresholds) - len(nominal_thresholds) + p.n_cells
 
 
 def _with(p, **kw):
@@ -473,6 +513,10 @@ def describe_parameters(name, p, dev, dt):
     if name == "thermal_drift":
         return {"rate_per_s": float(f"{p.rate:.5g}"), "curvature_per_s2": float(f"{p.curv:.5g}")}
     if name == "hysteresis_shape":
-        return {"operators": len(p.thresholds),
-                "thresholds": [float(f"{v:.5g}") for v in p.thresholds]}
+        out = {"operators": len(p.thresholds), "thresholds": [float(f"{v:.5g}") for v in p.thresholds]}
+        if p.n_cells:
+            out["kp_cells"] = p.n_cells
+            out["kp_grid_V"] = [float(f"{float(p.cells[1].min()) * p.u_norm:.4g}"),
+                                float(f"{float(p.cells[0].max()) * p.u_norm:.4g}")]
+        return out
     return {}

@@ -7,7 +7,8 @@ sampling lags, but splits the device at its only nonlinearity that is not linear
 
 * ``ua`` (delay, the amplifier's optional input stage, its output stage with current limit and
   rails) by the core's own :func:`~piezo_fmu.core.plant.amp_step` compiled with numba;
-* the play-operator outputs ``z_i[ua / u_norm]`` (``N x n``, numba);
+* the play-operator outputs ``z_i[ua / u_norm]`` (``N x n``, numba), and the KP cells' states
+  when the model has cells (:mod:`piezo_fmu.core.preisach`: linear in their weights too);
 * everything after the hysteresis is linear in the PI weights: creep, the mechanics (first mode,
   optional further mode) for ``x``; creep, then the stack force (pick-off ``stack``) or the load
   spring's force (``load``: through the mechanics), then leakage for ``us``. These are the core's
@@ -35,6 +36,7 @@ from scipy.signal import lfilter, sosfilt, ss2tf, tf2sos
 from ..core import plant
 from ..core.linear import discretize, tf2ss
 from ..core.plant import mechanics_tf, mode_tf, series_tf
+from ..core.preisach import kp_relax, kp_step, kp_table
 from .model_io import Device, Params, Recording, device_from_model, model_from_params, params_from_model
 
 __all__ = [
@@ -42,6 +44,7 @@ __all__ = [
     "Params",
     "Recording",
     "amplifier_output",
+    "cell_states",
     "chain",
     "device_from_model",
     "model_from_params",
@@ -120,7 +123,47 @@ def _kernels():
                 out[k] = out[k] / (1.0 + abs(out[k]) * y_inv)
         return out
 
-    return amp_run, play_run, pi_run
+    @numba.njit(cache=True, nogil=True)
+    def cell_run(v, up, down, width, s0, ref, out):
+        # each KP cell on its own (the rule of core.preisach.kp_step), counted from its relaxed state
+        for i in range(up.size):
+            a = up[i]
+            b = down[i]
+            w = width[i]
+            s = s0[i]
+            r = ref[i]
+            row = out[i]
+            for k in range(v.size):
+                lo = min(max(2.0 * (v[k] - a) / w + 1.0, -1.0), 1.0)
+                hi = min(max(2.0 * (v[k] - b) / w - 1.0, -1.0), 1.0)
+                if s < lo:
+                    s = lo
+                elif s > hi:
+                    s = hi
+                row[k] = s - r
+        return out
+
+    @numba.njit(cache=True, nogil=True)
+    def cell_sum_run(v, up, down, width, mu, s0, ref, out):
+        # the weighted sum of the cells added to ``out`` without storing them
+        for i in range(up.size):
+            a = up[i]
+            b = down[i]
+            w = width[i]
+            s = s0[i]
+            m = mu[i]
+            r = ref[i]
+            for k in range(v.size):
+                lo = min(max(2.0 * (v[k] - a) / w + 1.0, -1.0), 1.0)
+                hi = min(max(2.0 * (v[k] - b) / w - 1.0, -1.0), 1.0)
+                if s < lo:
+                    s = lo
+                elif s > hi:
+                    s = hi
+                out[k] += m * (s - r)
+        return out
+
+    return amp_run, play_run, pi_run, cell_run, cell_sum_run
 
 
 # -- pieces of the replay -------------------------------------------------------------------------
@@ -144,12 +187,39 @@ def initial_state(ua0: float, p: Params) -> np.ndarray:
     return np.minimum(v0 + r, np.maximum(top - r, 0.0))
 
 
+def cell_states(ua0: float, p: Params):
+    """The KP cells' states ``(relaxed, start)``: relaxed at rest (the core's
+    :func:`~piezo_fmu.core.preisach.kp_relax`) and at the first sample (after the preparation sweep
+    of :func:`initial_state`, when there is one)."""
+    up, down, width = p.cells
+    c = kp_table(up, down, width, np.zeros(up.size))
+    s = [0.0] * up.size
+    kp_relax(c, s)
+    relaxed = np.array(s)
+    if p.prep > 0.0:
+        kp_step(p.prep / p.u_norm, c, s)
+        kp_step(ua0 / p.u_norm, c, s)
+    return relaxed, np.array(s)
+
+
 def operators(ua: np.ndarray, p: Params) -> np.ndarray:
-    """Play-operator outputs ``(N, n)`` for the stack voltage ``ua``, from :func:`initial_state`."""
-    play_run = _kernels()[1]
+    """Play-operator outputs ``(n, N)`` for the stack voltage ``ua``, from :func:`initial_state`,
+    followed by the KP cells' states counted from their relaxed state (``(n + m, N)``, or with the
+    cells held their weighted sum, ``(n + 1, N)``: the columns of :meth:`Params.all_weights`)."""
+    kern = _kernels()
     r = np.asarray(p.thresholds, dtype=float)
-    z = np.empty((r.size, ua.size))
-    return play_run(ua / p.u_norm, r, z, initial_state(float(ua[0]), p))
+    z = np.empty((r.size + p.n_cell_cols, ua.size))
+    v = ua / p.u_norm
+    kern[1](v, r, z[:r.size], initial_state(float(ua[0]), p))
+    if p.n_cells:
+        relaxed, start = cell_states(float(ua[0]), p)
+        cells = [np.ascontiguousarray(c) for c in p.cells]
+        if p.cells_held:          # one column: the cells' weighted sum
+            z[r.size] = 0.0
+            kern[4](v, *cells, np.asarray(p.cell_w, float), start, relaxed, z[r.size])
+        else:
+            kern[3](v, *cells, start, relaxed, z[r.size:])
+    return z
 
 
 @lru_cache(maxsize=256)
@@ -342,13 +412,20 @@ def replay(rec: Recording, dev: Device, p: Params) -> Replay:
 def stroke(rec: Recording, dev: Device, p: Params, rp: Replay | None = None):
     """Hysteretic free stroke ``x_h`` [um] (saturated), from the stored operators or computed directly."""
     if rp is not None:
-        hx = np.asarray(p.weights, float) @ rp.z
+        hx = p.all_weights() @ rp.z
         return saturate(hx, p.y_sat)
     ua = amplifier_output(rec, dev, p)
-    pi_run = _kernels()[2]
+    kern = _kernels()
     y_inv = 1.0 / p.y_sat if math.isfinite(p.y_sat) else 0.0
-    return pi_run(ua / p.u_norm, np.asarray(p.thresholds, float), np.asarray(p.weights, float), y_inv,
-                  np.empty(rec.n), initial_state(float(ua[0]), p))
+    v = ua / p.u_norm
+    if not p.n_cells:
+        return kern[2](v, np.asarray(p.thresholds, float), np.asarray(p.weights, float), y_inv,
+                       np.empty(rec.n), initial_state(float(ua[0]), p))
+    hx = kern[2](v, np.asarray(p.thresholds, float), np.asarray(p.weights, float), 0.0,
+                 np.empty(rec.n), initial_state(float(ua[0]), p))
+    relaxed, start = cell_states(float(ua[0]), p)
+    kern[4](v, *(np.ascontiguousarray(c) for c in p.cells), p.cell_weights(), start, relaxed, hx)
+    return saturate(hx, p.y_sat)
 
 
 def predict(rec: Recording, dev: Device, p: Params, rp: Replay | None = None, direct=False) -> dict:

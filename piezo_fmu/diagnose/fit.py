@@ -30,7 +30,8 @@ class Structure:
     effects: tuple = ()
     creep_order: int = 0
     saturation: bool = False     # the nominal model's strain saturation (re-fitted, not a finding)
-    shape_extra: int = 0         # operators added by hysteresis_shape (or by the refined ordinary loop)
+    shape_extra: int = 0         # operators and KP cells added by hysteresis_shape (or by the refined
+                                 # ordinary loop): linear parameters, counted by n_params
     refined: bool = False        # the finer loop as ordinary recalibration (a small loop-shape misfit)
 
     def refine(self, shape_extra):
@@ -70,10 +71,12 @@ class Structure:
 def strip(p: Params, struct: Structure, nominal_thresholds=None) -> Params:
     """``p`` with every mechanism not in ``struct`` switched off."""
     q = p.copy()
-    if "hysteresis_shape" not in struct.effects and not struct.refined and nominal_thresholds is not None \
-            and len(q.thresholds) != len(nominal_thresholds):
-        q.thresholds = np.asarray(nominal_thresholds, float)
-        q.weights = np.zeros(len(q.thresholds))
+    if "hysteresis_shape" not in struct.effects and not struct.refined and nominal_thresholds is not None:
+        if len(q.thresholds) != len(nominal_thresholds):
+            q.thresholds = np.asarray(nominal_thresholds, float)
+            q.weights = np.zeros(len(q.thresholds))
+        q.cells = q.cell_w = None
+        q.cells_held, q.cell_scale = False, 1.0
     if "creep" not in struct.effects:
         q.creep = []
     else:
@@ -248,7 +251,9 @@ class Fitter:
 
     # -- evaluation ------------------------------------------------------------------------------
     def replays(self, p: Params):
-        key = (p.tau, p.tau2, p.slew, p.delay, p.u_norm, p.prep, tuple(np.asarray(p.thresholds).tolist()))
+        key = (p.tau, p.tau2, p.slew, p.delay, p.u_norm, p.prep, tuple(np.asarray(p.thresholds).tolist()),
+               None if p.cells is None else p.cells.tobytes(),
+               np.asarray(p.cell_w, float).tobytes() if p.cells_held else None)
         rp = self._replays.get(key)
         if rp is None:
             rp = [replay(r, self.dev, p) for r in self.recs]

@@ -80,6 +80,39 @@ class Params:
     tau_leak: float = math.inf       # [s]
     prep: float = 0.0                # the operators' state at the first sample: 0 relaxed; > 0 after a
                                      # preparation sweep up to this stack voltage [V] and back to the start
+    cells: np.ndarray | None = None  # KP cells beside the PI, (3, m): switch-up, switch-down, ramp width
+                                     # [normalised like the thresholds]; None: none
+    cell_w: np.ndarray | None = None  # their weights [um of free stroke per unit of cell state]
+    cells_held: bool = False         # the cells' weights held in their ratios (one column, one scale)
+    cell_scale: float = 1.0          # that scale: the cells' weights are cell_w * cell_scale
+
+    @property
+    def n_cells(self):
+        return 0 if self.cells is None else int(self.cells.shape[1])
+
+    @property
+    def n_cell_cols(self):
+        """Columns the cells add to the linear solve: one each, or one in all when held."""
+        return min(self.n_cells, 1) if self.cells_held else self.n_cells
+
+    def all_weights(self):
+        """The weights of the columns of :func:`.engine.operators`: the PI's, then the cells' (or,
+        held, the scale 1 of their weighted sum)."""
+        if not self.n_cells:
+            return np.asarray(self.weights, float)
+        tail = [self.cell_scale] if self.cells_held else self.cell_weights()
+        return np.concatenate([np.asarray(self.weights, float), tail])
+
+    def cell_weights(self):
+        """The cells' weights [um]."""
+        return np.asarray(self.cell_w, float) * self.cell_scale
+
+    def hold_cells(self, held=True):
+        """A copy with the cells' weights held in their ratios (``held``) or free again."""
+        q = self.copy()
+        if q.n_cells and q.cells_held != held:
+            q.cell_w, q.cell_scale, q.cells_held = q.cell_weights(), 1.0, held
+        return q
 
     def copy(self):
         return copy.deepcopy(self)
@@ -142,7 +175,10 @@ def params_from_model(model, dt=None) -> Params:
     def lag(v):
         return int(round(v / dt)) if (dt and v > 0) else 0
 
+    cells = np.array([h.get(f"cells_{k}", []) for k in ("up", "down", "width")], float)
     return Params(
+        cells=cells if cells.shape[1] else None,
+        cell_w=h["scale"] * np.array(h.get("cells_weights", []), float) if cells.shape[1] else None,
         tau=a["R"] * a["C_a"], u_norm=h["u_norm"], thresholds=np.array(h["thresholds"], float),
         weights=h["scale"] * np.array(h["weights"], float), m=me["m"], c=me["c"],
         tau2=a.get("tau_2", 0.0), pick=me.get("pickoff", "stack"),
@@ -203,6 +239,15 @@ def model_from_params(base, p: Params, sources: dict, dt=None):
     put("hysteresis", "weights", ws, fitted + " (bounded least squares, every partial sum > 0)")
     put("hysteresis", "saturation", _num(p.y_sat) if math.isfinite(p.y_sat) else math.inf,
         "diagnose: nominal saturation, scaled with the recalibrated stroke")
+    if p.n_cells:
+        src = fitted + (" (KP cells on a Preisach grid over the recording's stack voltages: a loop shape "
+                        "the play operators cannot draw)")
+        for i, key in enumerate(("cells_up", "cells_down", "cells_width")):
+            put("hysteresis", key, [float(v) for v in p.cells[i]], src)
+        put("hysteresis", "cells_weights", [float(v) for v in p.cell_weights() / total], src)
+    else:
+        for key in ("cells_up", "cells_down", "cells_width", "cells_weights"):
+            put("hysteresis", key, [], "diagnose: no loop shape beyond the play operators")
     put("hysteresis", "prepared", _num(p.prep),
         "diagnose: the recording starts with the memory of a sweep up to this stack voltage" if p.prep > 0
         else "diagnose: the recording starts relaxed")

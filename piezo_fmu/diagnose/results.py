@@ -75,6 +75,11 @@ def to_model(base, p, dev, recs, noise, what, sources):
     if len(p.thresholds) != len(base["hysteresis"]["thresholds"]):
         src[("hysteresis", "thresholds")] = ("diagnose: the nominal thresholds plus their midpoints (a finer loop: "
                                              "hysteresis_shape when named, else refined in the recalibration)")
+    if p.n_cells:
+        what_cells = ("fitted by piezo-fmu diagnose: KP cells on a Preisach grid over the recorded stack voltages "
+                      "(a finer loop: hysteresis_shape when named, else refined in the recalibration)")
+        for key in ("cells_up", "cells_down", "cells_width", "cells_weights"):
+            src[("hysteresis", key)] = what_cells
     m = model_from_params(base, p, src, dt=min(r.dt for r in recs))
     if dev.u_min < base["amplifier"]["u_min"] or dev.u_max > base["amplifier"]["u_max"]:
         m.set("amplifier", "u_min", float(f"{dev.u_min:.6g}"), "widened by diagnose: the recording's command exceeds the nominal rails")

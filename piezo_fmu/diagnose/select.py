@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from .catalogue import CATALOGUE, plausible, propose, residual_peaks
+from .catalogue import CATALOGUE, plausible, propose, residual_peaks, shape_size
 from .fit import Fitter, free_names, get_value, strip
 from .residuals import ACCEPT, full_residuals, residual_sets
 from .stats import compare, noise_level
@@ -42,6 +42,7 @@ CONFIDENT = 0.5              # findings at or above this confidence are named; b
 # current limit got a shape named from 1.04 x the noise (rig-023)
 SHAPE_EXPLAINED = 0.7
 SHAPE_REMOVED = 2.0
+SHAPE_LAST = 0.8           # a physical mechanism explaining this share of what a finer loop does goes first
 CREEP_BEFORE_DRIFT = 0.03  # a drift in both channels must explain this much more of the structured
                            # residual (share, mean over channels) than a creep element
 
@@ -51,8 +52,45 @@ CREEP_BEFORE_DRIFT = 0.03  # a drift in both channels must explain this much mor
 # above the Nyquist frequency is told apart only by how it reaches the two channels (rig-025: 5.1)
 MODE_EVIDENCE = 2.0
 
+ORDINARY_ADOPTIONS = 2     # times a search may hand a better fit of the ordinary physics to the recalibration
+
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
+
+
+def _physics_before_shape(best, tried, step, rnd):
+    """A loop shape wins a round only clearly: a passing physical mechanism that explains at least
+    :data:`SHAPE_LAST` as much goes first (the cells of a loop shape bend to the distortion of a
+    slew-limited step too, rig-006; a shape still missing is added in the next round, and the
+    backward check drops the mechanism if the shape makes it unnecessary)."""
+    if best["name"] != "hysteresis_shape":
+        return best
+    phys = [t for t in tried if t["passed"] and t["name"] != "hysteresis_shape"]
+    if not phys:
+        return best
+    alt = max(phys, key=lambda t: _score(t["cmp"], t["name"]))
+    if _score(alt["cmp"], alt["name"]) >= SHAPE_LAST * _score(best["cmp"], best["name"]):
+        step(f"round {rnd + 1}: {alt['name']} explains nearly as much as a finer loop: the physical reading first")
+        return alt
+    return best
+
+
+def _ordinary_found(fitter, tried, current, struct, p_base, sets_cur, noise):
+    """A failed candidate's fit that owes its gain to the ordinary physics re-fitted with it (the
+    lag, the first mode, the weights moved to a better optimum while the candidate's own parameter
+    stayed inert: a current limit that never binds, a negligible creep gain): that fit with the
+    candidate switched off, re-fitted, when it beats the current model by BIC (> 10, effective
+    sample size, no added parameter) with no channel worse on held-out data. Returns
+    ``(params, name, dbic)`` or None."""
+    t = max(tried, key=lambda t: _score(t["cmp"], t["name"]))
+    if not (t["fit"].cost < fitter.cost(current) and _score(t["cmp"], t["name"]) > ACCEPT["explained"]):
+        return None
+    q = fitter.fit(strip(t["fit"].params.hold_cells(False), struct, p_base.thresholds), struct, max_nfev=8).params
+    cmp = compare(sets_cur, residual_sets(fitter, q)[0], 0, noise)
+    worse = any(v["rel_improvement"] < -ACCEPT["worse"] for v in cmp["channels"].values())
+    if cmp["dbic"] > ACCEPT["dbic"] and cmp["p_lr"] < ACCEPT["p_lr"] and not worse:
+        return q, t["name"], cmp["dbic"]
+    return None
 
 
 def noise_levels(fitter: Fitter, p):
@@ -364,6 +402,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     (an ordinary item the finding's residual had hidden) or ``None``."""
     current, struct = p_base, struct_nom
     findings, rejected = [], []
+    adopted = 0
     sets_cur, _ = residual_sets(fitter, current)
     budget_note = None
     for rnd in range(max_rounds):
@@ -376,15 +415,20 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             # instance, hardly moves the residual's overall level)
             step("the residual is at the noise floor: nothing more to explain")
             break
-        names = [n for n in CATALOGUE if n not in struct.effects or n == "creep"]
+        # creep may add an element and a named loop shape a finer grid of cells (propose says when)
+        names = [n for n in CATALOGUE if n not in struct.effects or n in ("creep", "hysteresis_shape")]
         q0 = fitter.quick(current)
         if rnd > 0:
             # peaks of what is left now (the first round's residual may be dominated by something else)
             cctx["peaks"] = residual_peaks(fitter, current)
         screened = []
+        # while other mechanisms are searched a loop shape found before keeps its form (its cells'
+        # weights held in their ratios, one scale free): one column instead of tens; the final fit
+        # frees them again
+        held = current.hold_cells()
         for i, name in enumerate(names):
             step(f"round {rnd + 1}: screening {name} ({i + 1}/{len(names)})")
-            start = propose(name, fitter, current, struct, cctx)
+            start = propose(name, fitter, current if name == "hysteresis_shape" else held, struct, cctx)
             alt = None
             if name in FAST and recal is not None:
                 # a fast mechanism may be what the fast ordinary items stand in for: screen it also
@@ -392,7 +436,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 from .recalibrate import present, without
                 items = present(fitter, recal)
                 if items:
-                    base = current
+                    base = held
                     for it in items:
                         base = without(base, it, recal)
                     a = propose(name, fitter, base, struct, cctx)
@@ -417,7 +461,9 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         screened.sort(key=lambda s: -s[0])
         step(f"round {rnd + 1}: screening gains " + ", ".join(f"{n} {g / max(q0, 1e-300):.3g}" for g, n, _, _ in screened))
         tried = []
-        top = screened[0][0] if screened else 0.0
+        # the loop shape's cells can bend to much that is not a loop shape: the physical candidates
+        # are measured against the best of them, not against the shape
+        top = max([g for g, n, _, _ in screened if n != "hysteresis_shape"] + [0.0])
         for i, (gain, name, start, alt) in enumerate(screened[:4]):
             # the best screened candidate, the next ones when they come close to it, and further ones
             # (down the screening order) as long as nothing tried so far passed
@@ -428,7 +474,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 budget_note = "time budget reached: the weaker screened candidates were not fitted"
                 break
             step(f"round {rnd + 1}: fitting {name} (with the lag and every coupled parameter)")
-            s_new = struct.with_effect(name, len(start.thresholds) - len(current.thresholds), len(start.creep))
+            s_new = struct.with_effect(name, shape_size(start, p_base.thresholds), len(start.creep))
             fits = []
             for st, dropped0 in ((start, []), alt or (None, None)):
                 if st is None:
@@ -457,10 +503,23 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             tried.append({"name": name, "fit": fr, "cmp": cmp, "passed": passed, "why": why,
                           "note": ok[1], "struct": s_new, "sets": sets_new, "bounds": bounds, "dropped": dropped})
         if not any(t["passed"] for t in tried):
+            better = None if adopted >= ORDINARY_ADOPTIONS else _ordinary_found(fitter, tried, current, struct,
+                                                                                  p_base, sets_cur, noise)
+            if better is not None:
+                adopted += 1
+                step(f"round {rnd + 1}: the search for {better[1]} found a better fit of the ordinary physics "
+                     f"(dBIC {better[2]:.0f} with {better[1]} switched off): taken into the recalibration")
+                current = better[0]
+                if recal is not None:
+                    recal.params = current
+                noise.update(noise_levels(fitter, current)[0])
+                sets_cur, _ = residual_sets(fitter, current)
+                continue
             rejected += [{"effect": t["name"], "why": t["why"], **({"at_bound": t["bounds"]} if t["bounds"] else {})}
                          for t in tried]
             break
         best = max((t for t in tried if t["passed"]), key=lambda t: _score(t["cmp"], t["name"]))
+        best = _physics_before_shape(best, tried, step, rnd)
         best = _creep_before_drift(best, tried, struct, step, rnd)
         as_mode = _resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd)
         if as_mode is not None:
@@ -471,16 +530,17 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             noise.update(noise_levels(fitter, current)[0])
             sets_cur, _ = residual_sets(fitter, current)
             continue
-        if best["name"] == "hysteresis_shape":
+        if best["name"] == "hysteresis_shape" and "hysteresis_shape" not in struct.effects:
             removed = max(_removed(v) for v in best["cmp"]["channels"].values())
             explained = max(v["explained"] for v in best["cmp"]["channels"].values())
             if removed < SHAPE_REMOVED or explained < SHAPE_EXPLAINED:
                 step(f"round {rnd + 1}: the finer loop explains {100 * explained:.0f} % ({removed:.2f} x the "
                      "noise): an ordinary loop difference, taken into the recalibration (not named)")
-                struct = struct.refine(len(best["fit"].params.thresholds) - len(p_base.thresholds))
+                struct = struct.refine(shape_size(best["fit"].params, p_base.thresholds))
                 current = fitter.fit(best["fit"].params, struct, max_nfev=10).params
                 if recal is not None:
-                    recal.report["loop"] = {"operators": len(current.thresholds), "refined": True,
+                    recal.report["loop"] = {"operators": len(current.thresholds), "kp_cells": current.n_cells,
+                                            "refined": True,
                                             "removed_noise_multiples": round(removed, 2),
                                             "explained_share": round(explained, 3)}
                 sets_cur, _ = residual_sets(fitter, current)
@@ -531,6 +591,8 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         noise.update(noise_levels(fitter, current)[0])
         sets_cur, _ = residual_sets(fitter, current)
 
+    if current.cells_held:
+        current = fitter.fit(current.hold_cells(False), struct, max_nfev=6).params
     # -- backward check: every accepted mechanism must still be needed ---------------------------------
     added = list(dict.fromkeys(f["name"] for f in findings))
     if len(added) >= 2:

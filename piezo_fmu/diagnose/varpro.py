@@ -22,6 +22,7 @@ __all__ = ["residuals", "solve_linear"]
 
 S_ROUNDS = 200     # most alternations of the sensor gain with the weights per solve
 S_TOL = 1e-9       # relative change of the sensor gain at which the alternation stops
+CELL_RIDGE = 1e-9  # ridge on the KP cells' weights, relative to each column's squared norm
 
 
 def _design(rec, dev, p, rp, lin_w):
@@ -41,7 +42,8 @@ def _design(rec, dev, p, rp, lin_w):
 
 def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_sensor_gain=True,
                  replays=None, gn_iter=2, rows="train", want_residuals=True):
-    """Fit the PI weights, offsets, drift and sensor gain for fixed dynamics; update ``p`` in place.
+    """Fit the PI weights (and the KP cells' weights), offsets, drift and sensor gain for fixed
+    dynamics; update ``p`` in place.
 
     Minimises ``sum_c lam[c] * ||y_c - model_c||^2`` over the training rows with every partial sum
     of the weights >= a small positive bound (the model stays invertible; concave loading curves
@@ -52,131 +54,213 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
     """
     replays = replays or [replay(r, dev, p) for r in recs]
     n = len(p.thresholds)
+    nw = n + p.n_cell_cols                      # weight columns: the PI operators, then the KP cells
     has_x = any(r.x is not None for r in recs)
     has_us = any(r.us is not None for r in recs)
     nd = 1 + drift_terms if has_x else 0
-    n_par = n + nd + (1 if has_us else 0)       # W (partial sums) | x offset, rate, curv | us offset
-    diff = np.eye(n) - np.eye(n, k=-1)          # w = diff @ W
-    lin_w = np.asarray(p.weights, float) if np.any(p.weights) else None
+    n_par = nw + nd + (1 if has_us else 0)      # W (partial sums) | cells | x offset, rate, curv | us offset
+    diff = np.eye(nw)                           # w = diff @ theta[:nw]: partial sums for the PI,
+    diff[:n, :n] -= np.eye(n, k=-1)             # the cells' weights as they are (any sign)
+    lin_w = p.all_weights() if np.any(p.all_weights()) else None
     iters = 1
     if math.isfinite(p.y_sat):
         iters = gn_iter + (1 if lin_w is None else 0)
     # a load pick-off follows the push rod: a drift of the displacement reaches the sensor too
     nt = drift_terms if (has_x and has_us and p.pick == "load") else 0
+    # with KP cells the saturation's Gauss-Newton steps are damped: a step that raises the training
+    # cost is re-solved with a Levenberg-Marquardt term (up to four, growing), else the solve stops
+    # where it was. Cells and operators combine into directions that shift the whole stroke while
+    # the channel offsets take the shift back: free for the linearised problem, not for the
+    # saturation (a full step moved the stroke by 12 um and the cost rose 3e4 -> 5e6, rig-052).
+    # Without cells the full step stays: halved steps left a screening whose weights had to move
+    # far short of them, and a first mode went unseen (rig-046)
+    damped = math.isfinite(p.y_sat) and p.n_cells > 0
+    r_last = residuals(recs, dev, p, lam, replays) if (damped and lin_w is not None) else None
     for _ in range(iters):
-        kx, ks = n + 1 + nd, n + 2 + nt         # rows of the x and us designs
+        before = _linear_state(p)
+        kx, ks = nw + 1 + nd, nw + 2 + nt       # rows of the x and us designs
         Mx, cx, Ms, cs = np.zeros((kx, kx)), np.zeros(kx), np.zeros((ks, ks)), np.zeros(ks)
         for r, rp in zip(recs, replays):
             ax, asf = _design(r, dev, p, rp, lin_w)
             if r.x is not None:
                 cmat = np.empty((kx, r.n))
-                cmat[:n + 1] = ax
+                cmat[:nw + 1] = ax
                 if nd >= 1:
-                    cmat[n + 1] = 1.0
+                    cmat[nw + 1] = 1.0
                 if nd >= 2:
                     tl = shift(r.t, p.lag_x)
-                    cmat[n + 2] = tl
+                    cmat[nw + 2] = tl
                 if nd >= 3:
-                    cmat[n + 3] = tl * tl
+                    cmat[nw + 3] = tl * tl
                 Mx += _gram(cmat, r, rows)
                 cx += _gram_vec(cmat, r.x, r, rows)
             if r.us is not None:
                 cmat = np.empty((ks, r.n))
-                cmat[:n + 1] = asf
-                cmat[n + 1] = 1.0
+                cmat[:nw + 1] = asf
+                cmat[nw + 1] = 1.0
                 for j in range(nt):              # the drift's rate and curvature terms in the force
-                    cmat[n + 2 + j] = shift(leak(dev.k_load * r.t ** (j + 1), p.tau_leak, r.dt), p.lag_us)
+                    cmat[nw + 2 + j] = shift(leak(dev.k_load * r.t ** (j + 1), p.tau_leak, r.dt), p.lag_us)
                 Ms += _gram(cmat, r, rows)
                 cs += _gram_vec(cmat, r.us, r, rows)
         # coefficient maps: c_x = Px theta + qx, c_s = Ps theta + qs
         Px = np.zeros((kx, n_par))
-        Px[:n, :n] = diff
-        Px[n + 1:, n:n + nd] = np.eye(nd)
+        Px[:nw, :nw] = diff
+        Px[nw + 1:, nw:nw + nd] = np.eye(nd)
         qx = np.zeros(kx)
-        qx[n] = 1.0
-        S = p.S
-        # the sensor gain and the weights alternate until the gain settles: with both channels
-        # the alternation converges only linearly, and a gain far from the data's (a sensor of
-        # another sensitivity) needs tens of rounds; three left the displacement at a fifth of
-        # its stroke (rig-125)
-        bilinear = has_x and has_us and fit_sensor_gain
-        for _ in range(S_ROUNDS if bilinear else 1):
-            S_prev = S
-            G = np.zeros((n_par, n_par))
-            rhs = np.zeros(n_par)
-            if has_x:
-                G += lam["x"] * (Px.T @ Mx @ Px)
-                rhs += lam["x"] * (Px.T @ (cx - Mx @ qx))
-            if has_us:
-                Ps = np.zeros((ks, n_par))
-                Ps[:n, :n] = S * diff
-                Ps[n + 1, n_par - 1] = 1.0
-                for j in range(nt):
-                    Ps[n + 2 + j, n + 1 + j] = S
-                qs = np.zeros(ks)
-                qs[n] = S
-                G += lam["us"] * (Ps.T @ Ms @ Ps)
-                rhs += lam["us"] * (Ps.T @ (cs - Ms @ qs))
-            sol = _bounded_normal_solve(G, rhs, n, scale_hint=_scale_hint(recs, dev, p))
-            w = diff @ sol[:n]
-            if has_x and has_us and fit_sensor_gain:
-                # us = S * (force columns @ w + known + drift terms) + offset: regression on
-                # (prediction, 1)
-                v = np.zeros(ks)
-                v[:n] = w
-                v[n] = 1.0
-                v[n + 2:] = sol[n + 1:n + 1 + nt]
-                pp = v @ Ms @ v
-                p1 = v @ Ms[:, n + 1]
-                py = v @ cs
-                a = np.array([[pp, p1], [p1, Ms[n + 1, n + 1]]])
-                try:
-                    s_new = np.linalg.solve(a, [py, cs[n + 1]])[0]
-                except np.linalg.LinAlgError:
-                    s_new = S
-                if s_new > 0 and np.isfinite(s_new):
-                    S = float(s_new)
-                if abs(S - S_prev) <= S_TOL * abs(S):
+        qx[nw] = 1.0
+        grams = (Mx, cx, Ms, cs, Px, qx)
+        dims = (n, nw, nd, nt, n_par, ks, has_x, has_us, has_x and has_us and fit_sensor_gain, drift_terms)
+        hint = _scale_hint(recs, dev, p)
+        prior = _theta(p, dims)
+        _solve_into(p, grams, dims, lam, hint, before, prior, 0.0)
+        if damped:
+            r_new = residuals(recs, dev, p, lam, replays)
+            if r_last is not None and r_new @ r_new > r_last @ r_last:
+                # Levenberg-Marquardt: the step held towards where it started, more and more
+                for lm in LM_STEPS:
+                    _solve_into(p, grams, dims, lam, hint, before, prior, lm)
+                    r_new = residuals(recs, dev, p, lam, replays)
+                    if r_new @ r_new <= r_last @ r_last:
+                        break
+                else:
+                    _restore(p, before)
                     break
-        p.weights = w
-        p.S = S
-        if has_x:
-            p.off_x = float(sol[n])
-            p.rate = float(sol[n + 1]) if drift_terms >= 1 else 0.0
-            p.curv = float(sol[n + 2]) if drift_terms >= 2 else 0.0
-        if has_us:
-            p.off_s = float(sol[n_par - 1])
-        lin_w = w
+            r_last = r_new
+        lin_w = p.all_weights()
     if not want_residuals:
         return None
+    if r_last is not None:
+        return r_last
     return residuals(recs, dev, p, lam, replays)
 
 
-def _heldout_runs(r):
-    runs = r.__dict__.get("_ho_runs")
+LM_STEPS = (1e-4, 1e-2, 1.0, 100.0)   # Levenberg-Marquardt terms tried (scaled coordinates) after a failed step
+
+
+def _theta(p, dims):
+    """The linear parameters of ``p`` as the solve's vector: partial sums of the PI weights, the
+    cells' weights (or their scale), the x offset and drift, the us offset."""
+    n, nw, nd, nt, n_par, ks, has_x, has_us, bilinear, drift_terms = dims
+    th = np.zeros(n_par)
+    th[:n] = np.cumsum(p.weights)
+    if nw > n:
+        th[n:nw] = [p.cell_scale] if p.cells_held else p.cell_w
+    if has_x:
+        th[nw:nw + nd] = [p.off_x, p.rate, p.curv][:nd]
+    if has_us:
+        th[n_par - 1] = p.off_s
+    return th
+
+
+def _solve_into(p, grams, dims, lam, hint, before, prior, lm):
+    """Solve the linearised problem (Levenberg-Marquardt term ``lm`` towards ``prior``), the sensor
+    gain alternated with the weights from its value ``before``; write the result into ``p``."""
+    Mx, cx, Ms, cs, Px, qx = grams
+    n, nw, nd, nt, n_par, ks, has_x, has_us, bilinear, drift_terms = dims
+    diff = np.eye(nw)
+    diff[:n, :n] -= np.eye(n, k=-1)
+    S = float(before["S"])
+    # the sensor gain and the weights alternate until the gain settles: with both channels
+    # the alternation converges only linearly, and a gain far from the data's (a sensor of
+    # another sensitivity) needs tens of rounds; three left the displacement at a fifth of
+    # its stroke (rig-125)
+    for _ in range(S_ROUNDS if bilinear else 1):
+        S_prev = S
+        G = np.zeros((n_par, n_par))
+        rhs = np.zeros(n_par)
+        if has_x:
+            G += lam["x"] * (Px.T @ Mx @ Px)
+            rhs += lam["x"] * (Px.T @ (cx - Mx @ qx))
+        if has_us:
+            Ps = np.zeros((ks, n_par))
+            Ps[:nw, :nw] = S * diff
+            Ps[nw + 1, n_par - 1] = 1.0
+            for j in range(nt):
+                Ps[nw + 2 + j, nw + 1 + j] = S
+            qs = np.zeros(ks)
+            qs[nw] = S
+            G += lam["us"] * (Ps.T @ Ms @ Ps)
+            rhs += lam["us"] * (Ps.T @ (cs - Ms @ qs))
+        sol = _bounded_normal_solve(G, rhs, n, scale_hint=hint, ridge=(n, nw), prior=prior, lm=lm)
+        w = diff @ sol[:nw]
+        if bilinear:
+            # us = S * (force columns @ w + known + drift terms) + offset: regression on
+            # (prediction, 1)
+            v = np.zeros(ks)
+            v[:nw] = w
+            v[nw] = 1.0
+            v[nw + 2:] = sol[nw + 1:nw + 1 + nt]
+            pp = v @ Ms @ v
+            p1 = v @ Ms[:, nw + 1]
+            py = v @ cs
+            a = np.array([[pp, p1], [p1, Ms[nw + 1, nw + 1]]])
+            try:
+                s_new = np.linalg.solve(a, [py, cs[nw + 1]])[0]
+            except np.linalg.LinAlgError:
+                s_new = S
+            if s_new > 0 and np.isfinite(s_new):
+                S = float(s_new)
+            if abs(S - S_prev) <= S_TOL * abs(S):
+                break
+    p.weights = w[:n]
+    if nw > n:
+        if p.cells_held:
+            p.cell_scale = float(w[n])
+        else:
+            p.cell_w, p.cell_scale = w[n:], 1.0
+    p.S = S
+    if has_x:
+        p.off_x = float(sol[nw])
+        p.rate = float(sol[nw + 1]) if drift_terms >= 1 else 0.0
+        p.curv = float(sol[nw + 2]) if drift_terms >= 2 else 0.0
+    if has_us:
+        p.off_s = float(sol[n_par - 1])
+
+
+_LINEAR = ("weights", "cell_w", "cell_scale", "S", "off_x", "rate", "curv", "off_s")
+
+
+def _linear_state(p):
+    return {k: (None if getattr(p, k) is None else np.array(getattr(p, k), float)) for k in _LINEAR}
+
+
+def _restore(p, state):
+    for k in _LINEAR:
+        v = state[k]
+        setattr(p, k, v if (v is None or v.ndim) else float(v))
+
+
+def _runs(r, heldout):
+    """Contiguous runs ``(start, stop)`` of held-out (or training) samples, cached per recording."""
+    key = "_ho_runs" if heldout else "_tr_runs"
+    runs = r.__dict__.get(key)
     if runs is None:
-        ho = np.concatenate([[False], r.heldout, [False]]).astype(np.int8)
-        d = np.diff(ho)
+        mask = r.heldout if heldout else ~r.heldout
+        m = np.concatenate([[False], mask, [False]]).astype(np.int8)
+        d = np.diff(m)
         runs = list(zip(np.nonzero(d == 1)[0].tolist(), np.nonzero(d == -1)[0].tolist()))
-        r.__dict__["_ho_runs"] = runs
+        r.__dict__[key] = runs
     return runs
 
 
 def _gram(cmat, r, rows):
-    """``C C^T`` over the training samples: over all samples minus the held-out runs."""
-    g = cmat @ cmat.T
-    if rows == "train":
-        for a, b in _heldout_runs(r):
-            blk = cmat[:, a:b]
-            g -= blk @ blk.T
-    return g
+    """``C C^T`` over the training samples, summed over their runs (all samples minus the held-out
+    runs lost the small directions of nearly collinear columns to cancellation: KP cells)."""
+    if rows != "train":
+        return cmat @ cmat.T
+    g = None
+    for a, b in _runs(r, heldout=False):
+        blk = cmat[:, a:b]
+        g = blk @ blk.T if g is None else g + blk @ blk.T
+    return g if g is not None else np.zeros((cmat.shape[0], cmat.shape[0]))
 
 
 def _gram_vec(cmat, y, r, rows):
-    v = cmat @ y
-    if rows == "train":
-        for a, b in _heldout_runs(r):
-            v -= cmat[:, a:b] @ y[a:b]
+    if rows != "train":
+        return cmat @ y
+    v = np.zeros(cmat.shape[0])
+    for a, b in _runs(r, heldout=False):
+        v += cmat[:, a:b] @ y[a:b]
     return v
 
 
@@ -188,15 +272,30 @@ def _scale_hint(recs, dev, p):
     return max(max(spans or [1.0]), 1e-12)
 
 
-def _bounded_normal_solve(G, rhs, n_bounded, scale_hint=1.0):
-    """min ||M theta - y|| given ``G = M^T M`` and ``rhs = M^T y``; theta[:n_bounded] >= eps."""
+def _bounded_normal_solve(G, rhs, n_bounded, scale_hint=1.0, ridge=(0, 0), prior=None, lm=0.0):
+    """min ||M theta - y|| given ``G = M^T M`` and ``rhs = M^T y``; theta[:n_bounded] >= eps.
+
+    ``lm`` > 0 adds ``lm ||D (theta - prior)||^2`` (``D``: the columns' norms): a
+    Levenberg-Marquardt step held towards ``prior``.
+
+    ``ridge``: the slice ``(start, stop)`` of parameters held small by a ridge of :data:`CELL_RIDGE`
+    (relative to each column's norm): the KP cells' weights. Cells overlap one another and the play
+    operators (a Preisach grid can draw a play operator too), and a cell the record barely moves is
+    nearly a constant: without the ridge such near-collinear columns get weights of 1e9 that cancel
+    (rig-030)."""
     # a column the data never move (an operator whose threshold the input's reversals never reach)
     # has no information: a floor relative to the largest column keeps its weight at 0 instead of
     # 1/1e-150 (rig-096: a weight of 2.5e145 um, then a model file with a negative scale)
     diag = np.diag(G)
     d = np.sqrt(np.maximum(diag, 1e-18 * max(float(np.max(diag)), 1e-300)))
     Gs = G / np.outer(d, d)
+    if ridge[1] > ridge[0]:
+        idx = np.arange(ridge[0], ridge[1])
+        Gs[idx, idx] += CELL_RIDGE
     rs = rhs / d
+    if lm > 0.0:
+        Gs = Gs + lm * np.eye(len(d))
+        rs = rs + lm * d * prior
     jitter = 1e-12
     for _ in range(6):
         try:
