@@ -124,15 +124,18 @@ def _kernels():
         return out
 
     @numba.njit(cache=True, nogil=True)
-    def cell_run(v, up, down, width, s0, ref, out):
-        # each KP cell on its own (the rule of core.preisach.kp_step), counted from its relaxed state
+    def cell_run(v, up, down, width, s0, ref, mu, out):
+        # each KP cell on its own (the rule of core.preisach.kp_step), counted from its relaxed
+        # state: its states into out[i], or (mu given) its weighted states summed into out[0]
+        summed = mu.size > 0
         for i in range(up.size):
             a = up[i]
             b = down[i]
             w = width[i]
             s = s0[i]
             r = ref[i]
-            row = out[i]
+            row = out[0] if summed else out[i]
+            m = mu[i] if summed else 0.0
             for k in range(v.size):
                 lo = min(max(2.0 * (v[k] - a) / w + 1.0, -1.0), 1.0)
                 hi = min(max(2.0 * (v[k] - b) / w - 1.0, -1.0), 1.0)
@@ -140,30 +143,13 @@ def _kernels():
                     s = lo
                 elif s > hi:
                     s = hi
-                row[k] = s - r
+                if summed:
+                    row[k] += m * (s - r)
+                else:
+                    row[k] = s - r
         return out
 
-    @numba.njit(cache=True, nogil=True)
-    def cell_sum_run(v, up, down, width, mu, s0, ref, out):
-        # the weighted sum of the cells added to ``out`` without storing them
-        for i in range(up.size):
-            a = up[i]
-            b = down[i]
-            w = width[i]
-            s = s0[i]
-            m = mu[i]
-            r = ref[i]
-            for k in range(v.size):
-                lo = min(max(2.0 * (v[k] - a) / w + 1.0, -1.0), 1.0)
-                hi = min(max(2.0 * (v[k] - b) / w - 1.0, -1.0), 1.0)
-                if s < lo:
-                    s = lo
-                elif s > hi:
-                    s = hi
-                out[k] += m * (s - r)
-        return out
-
-    return amp_run, play_run, pi_run, cell_run, cell_sum_run
+    return amp_run, play_run, pi_run, cell_run
 
 
 # -- pieces of the replay -------------------------------------------------------------------------
@@ -216,9 +202,9 @@ def operators(ua: np.ndarray, p: Params) -> np.ndarray:
         cells = [np.ascontiguousarray(c) for c in p.cells]
         if p.cells_held:          # one column: the cells' weighted sum
             z[r.size] = 0.0
-            kern[4](v, *cells, np.asarray(p.cell_w, float), start, relaxed, z[r.size])
+            kern[3](v, *cells, start, relaxed, np.asarray(p.cell_w, float), z[r.size:])
         else:
-            kern[3](v, *cells, start, relaxed, z[r.size:])
+            kern[3](v, *cells, start, relaxed, np.empty(0), z[r.size:])
     return z
 
 
@@ -424,7 +410,7 @@ def stroke(rec: Recording, dev: Device, p: Params, rp: Replay | None = None):
     hx = kern[2](v, np.asarray(p.thresholds, float), np.asarray(p.weights, float), 0.0,
                  np.empty(rec.n), initial_state(float(ua[0]), p))
     relaxed, start = cell_states(float(ua[0]), p)
-    kern[4](v, *(np.ascontiguousarray(c) for c in p.cells), p.cell_weights(), start, relaxed, hx)
+    kern[3](v, *(np.ascontiguousarray(c) for c in p.cells), start, relaxed, p.cell_weights(), hx[None, :])
     return saturate(hx, p.y_sat)
 
 

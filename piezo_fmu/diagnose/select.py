@@ -547,8 +547,11 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 continue
         # the strongest competitor on the same residual (a failed one counts half)
         b_score = _score(best["cmp"], best["name"])
+        # (a finer loop's cells bend to much of any residual: they rival a loop shape, not physics
+        # the loop cannot have, which _physics_before_shape already put first)
         others = [(_closeness(b_score, _score(t["cmp"], t["name"])) * (1.0 if t["passed"] else 0.5), t)
-                  for t in tried if t is not best]
+                  for t in tried if t is not best
+                  and (t["name"] != "hysteresis_shape" or best["name"] == "hysteresis_shape")]
         alt = max([a for a, _ in others] + [0.0])
         rival = max(others, key=lambda o: o[0])[1] if others else None
         step(f"round {rnd + 1}: added {best['name']}")
