@@ -33,15 +33,16 @@ __all__ = ["ACCEPT", "CONFIDENT", "confidence", "full_residuals", "noise_levels"
 
 CONFIDENT = 0.5              # findings at or above this confidence are named; below: candidates
 # a finer loop is missing loop shape when it explains most of what is left (this share of the
-# structured residual on its best channel) by at least twice the noise (removed structured rms, in
-# noise rms); one that only trims a residual whose larger part stays, or removes less, is
-# approximating a loop of another kind (another hysteresis family, other thresholds): an ordinary
-# difference, taken into the recalibration, not named. Twice: a device's own loop of another family
-# lies up to ~1.5 noise rms from the best nine-operator PI (the rig's clean devices do), a loop
-# shape worth a name 3 or more (both generators' present shapes); at 1.0 a Bouc-Wen device with a
-# current limit got a shape named from 1.04 x the noise (rig-023)
+# structured residual on its best channel) by at least three times the noise (removed structured
+# rms, in noise rms); one that only trims a residual whose larger part stays, or removes less, is
+# approximating a loop of another kind (another hysteresis family, other thresholds) or bending to
+# another misfit: an ordinary difference, taken into the recalibration, not named. A device's own
+# loop of another family lies up to ~1.5 noise rms from the best nine-operator PI (the rig's clean
+# devices do), a loop shape worth a name 3 or more (both generators' present shapes). Twice was
+# enough for play operators alone; the KP cells bend further: a leakage's, a drift's and a current
+# limit's leftovers gave 2.1-2.4 (rig-053, 035, 023), named shapes 3.2-10 (rig-041, 030, 027)
 SHAPE_EXPLAINED = 0.7
-SHAPE_REMOVED = 2.0
+SHAPE_REMOVED = 3.0
 SHAPE_LAST = 0.8           # a physical mechanism explaining this share of what a finer loop does goes first
 CREEP_BEFORE_DRIFT = 0.03  # a drift in both channels must explain this much more of the structured
                            # residual (share, mean over channels) than a creep element
