@@ -1,0 +1,183 @@
+"""Rivals settled for the ordinary or the simpler reading, around the selection of :mod:`.select`.
+
+* a passing physical mechanism goes before a finer loop that explains little more
+  (:func:`physics_before_shape`);
+* a failed candidate whose fit owes its gain to the ordinary physics re-fitted with it hands that
+  fit to the recalibration (:func:`ordinary_found`);
+* a drift in both channels must beat one more creep element (:func:`creep_before_drift`, and
+  :func:`drift_or_creep` after the backward check);
+* a further mode where the device's first mode would do is that first mode
+  (:func:`resonance_or_mode`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .catalogue import propose
+from .decide import noise_levels, score
+from .fit import strip
+from .residuals import ACCEPT, residual_sets
+from .stats import compare
+
+__all__ = ["CREEP_BEFORE_DRIFT", "MODE_EVIDENCE", "ORDINARY_ADOPTIONS", "SHAPE_LAST", "creep_before_drift",
+           "drift_both", "drift_or_creep", "ordinary_found", "physics_before_shape", "resonance_or_mode"]
+
+SHAPE_LAST = 0.8           # a physical mechanism explaining this share of what a finer loop does goes first
+
+CREEP_BEFORE_DRIFT = 0.03  # a drift in both channels must explain this much more of the structured
+                           # residual (share, mean over channels) than a creep element
+
+# a further mode where the device's first mode would do must beat it by "positive" evidence (a BIC
+# difference of 2, Kass & Raftery 1995), not by a tie (rig-179, displacement only: the two are
+# the same dynamics, BIC 0.1); less than the naming threshold: a further mode beside a first mode
+# above the Nyquist frequency is told apart only by how it reaches the two channels (rig-025: 5.1)
+MODE_EVIDENCE = 2.0
+
+ORDINARY_ADOPTIONS = 2     # times a search may hand a better fit of the ordinary physics to the recalibration
+
+
+def physics_before_shape(best, tried, step, rnd):
+    """A loop shape wins a round only clearly: a passing physical mechanism that explains at least
+    :data:`SHAPE_LAST` as much goes first (the cells of a loop shape bend to the distortion of a
+    slew-limited step too, rig-006; a shape still missing is added in the next round, and the
+    backward check drops the mechanism if the shape makes it unnecessary)."""
+    if best["name"] != "hysteresis_shape":
+        return best
+    phys = [t for t in tried if t["passed"] and t["name"] != "hysteresis_shape"]
+    if not phys:
+        return best
+    alt = max(phys, key=lambda t: score(t["cmp"], t["name"]))
+    if score(alt["cmp"], alt["name"]) >= SHAPE_LAST * score(best["cmp"], best["name"]):
+        step(f"round {rnd + 1}: {alt['name']} explains nearly as much as a finer loop: the physical reading first")
+        return alt
+    return best
+
+
+def ordinary_found(fitter, tried, current, struct, p_base, sets_cur, noise):
+    """A failed candidate's fit that owes its gain to the ordinary physics re-fitted with it (the
+    lag, the first mode, the weights moved to a better optimum while the candidate's own parameter
+    stayed inert: a current limit that never binds, a negligible creep gain): that fit with the
+    candidate switched off, re-fitted, when it beats the current model by BIC (> 10, effective
+    sample size, no added parameter) with no channel worse on held-out data. Returns
+    ``(params, name, dbic)`` or None."""
+    t = max(tried, key=lambda t: score(t["cmp"], t["name"]))
+    if not (t["fit"].cost < fitter.cost(current) and score(t["cmp"], t["name"]) > ACCEPT["explained"]):
+        return None
+    q = fitter.fit(strip(t["fit"].params.hold_cells(False), struct, p_base.thresholds), struct, max_nfev=8).params
+    cmp = compare(sets_cur, residual_sets(fitter, q)[0], 0, noise)
+    worse = any(v["rel_improvement"] < -ACCEPT["worse"] for v in cmp["channels"].values())
+    if cmp["dbic"] > ACCEPT["dbic"] and cmp["p_lr"] < ACCEPT["p_lr"] and not worse:
+        return q, t["name"], cmp["dbic"]
+    return None
+
+
+def drift_both(tried):
+    """The passing thermal drift among ``tried`` that reaches both channels (a sensor on the push
+    rod: a pick-off the data did not identify), or ``None``."""
+    return next((t for t in tried if t["name"] == "thermal_drift" and t["passed"]
+                 and t["fit"].params.pick == "load" and "us" in t["cmp"]["channels"]), None)
+
+
+def creep_before_drift(best, tried, struct, step, rnd):
+    """A drift that moves both channels competes with a slow creep element (both move both
+    channels; a creep element slower than the record grows with the stroke's integral, a trend
+    under a unipolar drive). When creep is already in the model, or passed beside the drift, and
+    explains within ``CREEP_BEFORE_DRIFT`` of the drift's share, creep is kept: it needs no
+    assumption about the pick-off, which the data did not identify."""
+    drift = drift_both(tried)
+    creep = next((t for t in tried if t["name"] == "creep" and t["passed"]), None)
+    if best is not drift or creep is None:
+        return best
+    gap = score(drift["cmp"], drift["name"]) - score(creep["cmp"], creep["name"])
+    if gap > CREEP_BEFORE_DRIFT:
+        return best
+    what = "a further creep element" if "creep" in struct.effects else "creep"
+    step(f"round {rnd + 1}: {what} explains within {gap:.3f} of a drift that would need the sensor on the "
+         "push rod (a pick-off the data did not identify): creep kept")
+    return creep
+
+
+def drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise, cctx, step):
+    """With creep and a drift that reaches both channels accepted, try the drift as one more creep
+    element (a slow element grows with the stroke's integral: a trend under a unipolar drive).
+    When that model is within the BIC threshold of the one with the drift (the same number of
+    parameters, or fewer), the drift is not needed: creep takes its place. Returns ``(p, struct,
+    findings)``."""
+    names = {f["name"] for f in findings}
+    if not {"creep", "thermal_drift"} <= names or current.pick != "load" or struct.creep_order >= 2:
+        return current, struct, findings
+    step("checking whether a further creep element explains the drift in both channels")
+    s_wo = struct.without("thermal_drift")
+    base = strip(current, s_wo, p_base.thresholds)
+    base.pick = p_base.pick
+    start = propose("creep", fitter, base, s_wo, cctx)
+    if start is None:
+        return current, struct, findings
+    s_sw = s_wo.with_effect("creep", 0, len(start.creep))
+    fr = fitter.fit(start, s_sw, max_nfev=10)
+    full = fitter.cost(current)
+    k = struct.n_params() - s_sw.n_params()
+    worth = fitter.n_eff * math.log(max(fr.cost, 1e-300) / max(full, 1e-300)) - k * math.log(max(fitter.n_eff, 2.0))
+    need = ACCEPT["dbic"]
+    if worth >= need:
+        step(f"the drift stays: creep in its place leaves a BIC {worth:.1f} worse")
+        return current, struct, findings
+    step(f"creep with {len(fr.params.creep)} elements explains the drift in both channels as well (BIC "
+         f"{worth:.1f} < {need:g} for the drift): creep kept, the drift dropped")
+    rejected.append({"effect": "thermal_drift",
+                     "why": f"a further creep element explains it as well (BIC difference {worth:.1f} < {need:g}); "
+                            "a drift in both channels would also need the sensor on the push rod"})
+    sets_new, _ = residual_sets(fitter, fr.params)
+    for f in findings:
+        if f["name"] == "creep":
+            f["after"] = fr.params
+            f["rmse_after"] = {c: float(np.sqrt(np.mean(v["heldout"] ** 2))) for c, v in sets_new.items()}
+            if f.get("rival", {}) and f["rival"].get("effect") == "thermal_drift":
+                f["alt_share"] = 0.0
+    findings = [f for f in findings if f["name"] != "thermal_drift"]
+    noise.update(noise_levels(fitter, fr.params)[0])
+    return fr.params, s_sw, findings
+
+
+def resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd):
+    """A further mode found while the device's own first mode was not identified (the residual
+    that hid it was another's, or the sample rate left it to the mechanism's search), or one that
+    takes the identified first mode's place, may be that first mode: ordinary physics, not a
+    missing mechanism (rig-098, 179: a "further mode" at the device's first mode, 232 and 441 Hz).
+    The first mode is fitted from the found frequency and damping, with the pick-offs the channels
+    allow; when it explains the data as well as the further mode (BIC with the effective sample
+    size, the further mode's parameters against the first mode's and its pick-off's, within
+    ``MODE_EVIDENCE``), the first mode is recalibrated and nothing is named. Returns the new
+    parameters or ``None``."""
+    from .recalibrate import ITEM_K, adopt_mode, drop, mode_at
+
+    if best["name"] != "extra_resonance" or recal is None or (
+            "mech_f" in fitter.ordinary and "mode" not in best["dropped"]):
+        return None
+    f, z = best["fit"].params.res
+    base = strip(best["fit"].params, struct, p_base.thresholds)
+    fr = mode_at(fitter, base, struct, f, z, without_items=best["dropped"])
+    if fr is None:
+        step(f"round {rnd + 1}: the first mode started at {f:.4g} Hz settles at the end of its range: "
+             "the further mode stays")
+        return None
+    # both without the ordinary items the further mode explained (``dropped``)
+    # (the pick-off counts only where there is a choice: with the displacement alone it is the stack)
+    k_mode = ITEM_K["mode"] - (0 if "us" in cctx["channels"] else 1)
+    k = (best["struct"].n_params() - struct.n_params()) - k_mode
+    worth = fitter.n_eff * math.log(max(fr.cost, 1e-300) / max(best["fit"].cost, 1e-300)) \
+        - k * math.log(max(fitter.n_eff, 2.0))
+    f1, z1 = fr.params.mode(fitter.dev)
+    if worth >= MODE_EVIDENCE:
+        step(f"round {rnd + 1}: the further mode at {f:.4g} Hz beats the first mode there (BIC {worth:.1f})")
+        return None
+    step(f"round {rnd + 1}: the mode at {f:.4g} Hz is the device's first mode ({f1:.4g} Hz, zeta {z1:.3g}, "
+         f"sensor on {fr.params.pick}; the further mode would gain BIC {worth:.1f}): recalibrated, not named")
+    adopt_mode(fitter, recal, fr.params, why=f"found in round {rnd + 1} where a further mode was searched "
+                                             f"(it explains the mode as well: BIC difference {worth:.1f})")
+    for item in best["dropped"]:
+        if item != "mode":
+            drop(fitter, recal, item, why="the first mode explains it")
+    return recal.params
