@@ -61,7 +61,9 @@ def ordinary_found(fitter, tried, current, struct, p_base, sets_cur, noise):
     stayed inert: a current limit that never binds, a negligible creep gain): that fit with the
     candidate switched off, re-fitted, when it beats the current model by BIC (> 10, effective
     sample size, no added parameter) with no channel worse on held-out data. Returns
-    ``(params, name, dbic)`` or None."""
+    ``(params, name, dbic)`` or None (also when nothing was tried)."""
+    if not tried:
+        return None
     t = max(tried, key=lambda t: score(t["cmp"], t["name"]))
     if not (t["fit"].cost < fitter.cost(current) and score(t["cmp"], t["name"]) > ACCEPT["explained"]):
         return None
