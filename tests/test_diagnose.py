@@ -711,3 +711,33 @@ def test_a_loop_shape_of_another_kind_is_named_and_the_fmus_run_it(tmp_path):
     ho = fit["heldout"] == 1
     assert np.sqrt(np.mean((fit["x"] - fit["x_final"])[ho] ** 2)) < 0.8 * diag.result["baseline"]["rmse"]["x"]
     shutil.rmtree(fmus, ignore_errors=True)
+
+
+def test_recognition_scores_count_names_hidden_mechanisms_and_kinds():
+    # four hand-made case results whose counts are known: the study's figures are these sums
+    from piezo_fmu.diagnose.scoring import markdown, summarise
+
+    results = [
+        {"group": "single", "truth": ["hysteresis_shape"], "named": ["hysteresis_shape"], "seconds": 2.0,
+         "confidence": {"hysteresis_shape": 0.95}, "variants": {"hysteresis_shape": "knee"}},
+        {"group": "single", "truth": ["hysteresis_shape"], "named": [], "seconds": 4.0,
+         "candidates": {"hysteresis_shape": 0.3}, "variants": {"hysteresis_shape": "level_width"}},
+        {"group": "pair", "truth": ["creep", "time_delay"], "hidden": ["thermal_drift"], "seconds": 6.0,
+         "named": ["creep", "thermal_drift"], "confidence": {"creep": 0.8, "thermal_drift": 0.6}},
+        {"group": "clean", "truth": [], "named": ["time_delay"], "seconds": 8.0, "nothing_missing": False,
+         "confidence": {"time_delay": 0.55}},
+    ]
+    s = summarise(results, ["creep", "time_delay", "thermal_drift", "hysteresis_shape"])
+    assert s["recognition_rate"] == pytest.approx(2 / 4)            # shape once, creep; not the delay, not shape
+    assert s["false_name_case_rate"] == pytest.approx(1 / 4)        # the hidden drift is no false name
+    assert s["clean_nothing_missing_rate"] == 0.0
+    assert s["by_effect"]["hysteresis_shape"] == {"true": 2, "recognised": 1, "named_wrongly": 0, "candidate": 1}
+    assert s["by_effect"]["time_delay"]["named_wrongly"] == 1
+    assert s["by_variant"] == {"hysteresis_shape: knee": {"true": 1, "recognised": 1},
+                               "hysteresis_shape: level_width": {"true": 1, "recognised": 0}}
+    assert (s["named_right"], s["named_total"]) == (3, 4)
+    band = {tuple(b["band"]): b for b in s["calibration"]}
+    assert band[(0.5, 0.75)]["reported"] == 2 and band[(0.5, 0.75)]["right"] == 1
+    assert (s["median_seconds"], s["max_seconds"]) == (5.0, 8.0)
+    table = markdown(s)
+    assert "| hysteresis_shape: knee | 100 % (1/1) |" in table and "recognised 50 %" in table

@@ -31,10 +31,11 @@ def register(sub):
         "bench", help="measure co-simulation, monolithic, PI and diagnose speed",
         description="Measure, in one run: the FMI floor (3 pass-through FMUs), the co-simulation of "
                     "the three FMUs at H = 1e-4 s, the monolithic model at 1e-5 s, PI operator "
-                    "throughput and diagnose on a 20 s, 10 kHz recording. Figures, not pass/fail.")
+                    "throughput, writing a 100 s run as CSV and Parquet, diagnose on three hard 20 s, 10 kHz "
+                    "recordings and sweep throughput on dask. Figures, not pass/fail.")
     p.add_argument("--json", metavar="FILE", help="write the figures as JSON")
     p.add_argument("--size", choices=tuple(SIZES), default="full",
-                   help="full (default, about a minute) or tiny (seconds; for tests)")
+                   help="full (default, about 3-5 minutes on 2 cores) or tiny (seconds; for tests)")
     p.add_argument("--model", metavar="FILE.toml", default=None,
                    help="model file (default: the paper's, shipped with piezo-fmu)")
     p.add_argument("--force", action="store_true", help="overwrite --json")

@@ -159,11 +159,15 @@ def run_rig_case(spec):
     raw = [{"name": str(rec.truth.get("case_id", "case")), "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
     out = _diagnose(raw)
     t = rec.truth
+    params = t.get("params", {})                 # the device's own loop family and its shape feature
+    shape = params.get("hysteresis_shape.variant", {}).get("value")
     group = str(t.get("group", "")).replace("_", " ")
     out.update({"case": t.get("case_id"), "group": group, "truth": list(t.get("mechanisms", [])),
                 "hidden": list(t.get("hidden", [])), "control": t.get("control"),
                 "n_samples": int(np.size(rec.time)), "fs": t.get("fs"),
-                "visibility": t.get("visibility"), "channels": t.get("channels")})
+                "visibility": t.get("visibility"), "channels": t.get("channels"),
+                "family": params.get("hysteresis.family", {}).get("value"),
+                "variants": {"hysteresis_shape": shape} if shape else {}})
     return out
 
 

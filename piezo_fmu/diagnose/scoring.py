@@ -10,7 +10,12 @@ case ``group`` (clean, single, pair, control, one channel), ``named`` (``final.e
 * **nothing is missing**: clean cases with that verdict;
 * **confidence calibration**: every reported mechanism (findings and candidates) by confidence
   band, and how often it was right (true or hidden);
-* per mechanism and per group.
+* per mechanism and per group;
+* per kind of a mechanism, where the generator says which kind it put in (the rig's loop-shape
+  features: a width that depends on the level, a cluster of KP cells, a high-field knee; a result's
+  ``variants`` maps a mechanism to its kind). The kinds matter because the catalogue's
+  ``hysteresis_shape`` draws its loop with KP cells: the rig's cell cluster is of the same family,
+  the other two are not.
 """
 from __future__ import annotations
 
@@ -27,7 +32,7 @@ def _pct(a, b):
 
 
 def summarise(results, catalogue):
-    s = {"cases": len(results), "by_effect": {}, "by_group": {}, "calibration": []}
+    s = {"cases": len(results), "by_effect": {}, "by_group": {}, "by_variant": {}, "calibration": []}
     tp = fn = fp_cases = 0
     reported = []
     for r in results:
@@ -52,6 +57,11 @@ def summarise(results, catalogue):
             be["true"] += 1
             be["recognised"] += hit
             be["candidate"] += (not hit) and e in r.get("candidates", {})
+            kind = (r.get("variants") or {}).get(e)
+            if kind:
+                bv = s["by_variant"].setdefault(f"{e}: {kind}", {"true": 0, "recognised": 0})
+                bv["true"] += 1
+                bv["recognised"] += hit
         for e in wrong:
             s["by_effect"].setdefault(e, {"true": 0, "recognised": 0, "named_wrongly": 0, "candidate": 0})
             s["by_effect"][e]["named_wrongly"] += 1
@@ -89,6 +99,9 @@ def markdown(s, title=""):
         if not b:
             continue
         lines.append(f"| {e} | {_pct(b['recognised'], b['true'])} | {b['named_wrongly']} | {b['candidate']} |")
+    if s.get("by_variant"):
+        lines += ["", "| mechanism: kind put in | recognised |", "|---|---|"]
+        lines += [f"| {k} | {_pct(b['recognised'], b['true'])} |" for k, b in sorted(s["by_variant"].items())]
     lines += ["", "| case group | cases | exactly right | recognised | cases with a false name | \"nothing is missing\" |",
               "|---|---|---|---|---|---|"]
     for g in GROUPS:
