@@ -12,7 +12,6 @@ import pytest
 from piezo_fmu.core import compiled
 from piezo_fmu.core.buffers import pack
 from piezo_fmu.core.control import INVERSES, MODES
-from piezo_fmu.core.plant import Actuator
 from piezo_fmu.model import load_model
 from piezo_fmu.system import make_actuator, make_compensator
 
