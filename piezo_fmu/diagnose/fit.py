@@ -204,16 +204,26 @@ class Fitter:
         self.restart = {}        # name -> value a fit restarts from when it starts at a limit
         self.noise = {}          # channel -> noise level (set once the baseline is known)
         self.ordinary = ["tau"]  # ordinary nonlinear parameters fitted with every structure
-        self.deadline = math.inf  # process_time() [CPU s] after which no new search is started
+        self.budget = math.inf   # work (see spend) after which no new search is started
+        self.work = 0.0          # weighted samples simulated so far
+        self.n_samples = sum(r.t.size for r in recs)
         self.n_eval = 0
         self.n_eff = 1000.0      # effective sample size of the current residual (set by the recalibration)
 
     # -- bounds --------------------------------------------------------------------------------
     def out_of_time(self) -> bool:
-        """True once the search budget is spent. The budget is CPU time of this process (the
-        analysis is single-threaded), not wall time: the same recording gets the same search on an
-        idle machine and on one busy with other jobs."""
-        return time.process_time() > self.deadline
+        """True once the search budget is spent. The budget counts work, not time: the samples the
+        fits have simulated, each evaluation weighted by its kind (:meth:`spend`). The same
+        recordings get the same search on an idle machine, on one busy with other jobs, with
+        one diagnosis or two per core, and on a faster or slower machine."""
+        return self.work > self.budget
+
+    def spend(self, weight):
+        """Count one model evaluation of ``weight`` passes over every sample (thread-safe: the
+        Jacobian's columns are evaluated on two threads)."""
+        with self._lock:
+            self.n_eval += 1
+            self.work += weight * self.n_samples
 
     def bounds(self, name, p=None):
         if name in self.limits:
@@ -269,7 +279,8 @@ class Fitter:
         One Gauss-Newton step for the saturation per call: the weights are warm from the previous
         call, so the steps accumulate over an optimisation (the final solve takes two).
         """
-        self.n_eval += 1
+        # the operators' and cells' columns are solved for: a pass per four columns on top
+        self.spend(2.0 + (len(p.weights) + p.n_cell_cols) / 4.0)
         return solve_linear(self.recs, self.dev, p, self.lam, drift_terms=struct.drift_terms,
                             replays=self.replays(p), gn_iter=gn_iter)
 
@@ -301,7 +312,7 @@ class Fitter:
         """Weighted training SSE with the weights held and each channel's gain and offset re-fitted
         (and a drift polynomial on ``x``, and on ``us`` for a load pick-off, when ``drift``):
         normal equations on cached sums."""
-        self.n_eval += 1
+        self.spend(1.0)
         preds = [predict(r, self.dev, p, direct=True) for r in self.recs]
         sse = 0.0
         for ch in ("x", "us"):
@@ -322,7 +333,7 @@ class Fitter:
         """Weighted training residual with the PI weights held and each channel's gain and offset
         (and the displacement's drift polynomial when ``struct`` has one) solved exactly: one
         filtered column per channel instead of one per operator."""
-        self.n_eval += 1
+        self.spend(1.0)
         preds = [predict(r, self.dev, p, direct=True) for r in self.recs]
         out = []
         for ch in ("x", "us"):

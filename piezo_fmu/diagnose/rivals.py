@@ -17,7 +17,7 @@ import numpy as np
 
 from .catalogue import propose
 from .decide import noise_levels, score
-from .fit import strip
+from .fit import free_names, get_value, strip
 from .residuals import ACCEPT, residual_sets
 from .stats import compare
 
@@ -61,13 +61,17 @@ def ordinary_found(fitter, tried, current, struct, p_base, sets_cur, noise):
     stayed inert: a current limit that never binds, a negligible creep gain): that fit with the
     candidate switched off, re-fitted, when it beats the current model by BIC (> 10, effective
     sample size, no added parameter) with no channel worse on held-out data. Returns
-    ``(params, name, dbic)`` or None (also when nothing was tried)."""
+    ``(params, name, dbic)`` or None (also when nothing was tried, or when the candidate's fit
+    changed the ordinary structure itself, e.g. took the amplifier's second order)."""
     if not tried:
         return None
     t = max(tried, key=lambda t: score(t["cmp"], t["name"]))
     if not (t["fit"].cost < fitter.cost(current) and score(t["cmp"], t["name"]) > ACCEPT["explained"]):
         return None
-    q = fitter.fit(strip(t["fit"].params.hold_cells(False), struct, p_base.thresholds), struct, max_nfev=8).params
+    q0 = strip(t["fit"].params.hold_cells(False), struct, p_base.thresholds)
+    if any(get_value(q0, n, fitter.dev) <= 0.0 for n in free_names(struct, fitter.ordinary)):
+        return None     # the candidate changed the ordinary structure (a mode took the amplifier's 2nd order: rig-128)
+    q = fitter.fit(q0, struct, max_nfev=8).params
     cmp = compare(sets_cur, residual_sets(fitter, q)[0], 0, noise)
     worse = any(v["rel_improvement"] < -ACCEPT["worse"] for v in cmp["channels"].values())
     if cmp["dbic"] > ACCEPT["dbic"] and cmp["p_lr"] < ACCEPT["p_lr"] and not worse:
