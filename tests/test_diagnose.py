@@ -741,3 +741,25 @@ def test_recognition_scores_count_names_hidden_mechanisms_and_kinds():
     assert (s["median_seconds"], s["max_seconds"]) == (5.0, 8.0)
     table = markdown(s)
     assert "| hysteresis_shape: knee | 100 % (1/1) |" in table and "recognised 50 %" in table
+
+
+def test_the_search_budget_is_work_so_a_busy_machine_searches_the_same(tmp_path, monkeypatch):
+    # a budget small enough to end the search early: on an idle machine, and on one whose CPU clock
+    # runs 1000 s per reading (a machine busy with other jobs, or very slow), the same candidates
+    # are searched and the same result comes out (a CPU-time budget ends the second at once)
+    import time
+
+    from piezo_fmu.diagnose.run import analyse
+
+    case = make_case(34, ["creep", "time_delay"], "mid", ["chirp", "steps"], fs=2000.0)
+    raw = [{"name": "budget", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
+    idle = analyse(raw, time_budget_s=2.0).result
+    clock = iter(range(0, 10 ** 9, 1000))
+    monkeypatch.setattr(time, "process_time", lambda: float(next(clock)))
+    busy = analyse(raw, time_budget_s=2.0).result
+    # the budget ended the search after one round (no budget: creep and the delay, six rejected)
+    assert [r["why"] for r in idle["rejected"]] == ["time budget reached after 1 round(s): no further candidates searched"]
+    assert idle["final"]["effects"] == ["time_delay"]
+    assert busy["final"]["effects"] == idle["final"]["effects"]
+    assert [r["why"] for r in busy["rejected"]] == [r["why"] for r in idle["rejected"]]
+    assert busy["final"]["rmse"] == idle["final"]["rmse"]
