@@ -753,10 +753,10 @@ def test_the_search_budget_is_work_so_a_busy_machine_searches_the_same(tmp_path,
 
     case = make_case(34, ["creep", "time_delay"], "mid", ["chirp", "steps"], fs=2000.0)
     raw = [{"name": "budget", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
-    idle = analyse(raw, time_budget_s=2.0).result
+    idle = analyse(raw, time_budget_s=4.0).result
     clock = iter(range(0, 10 ** 9, 1000))
     monkeypatch.setattr(time, "process_time", lambda: float(next(clock)))
-    busy = analyse(raw, time_budget_s=2.0).result
+    busy = analyse(raw, time_budget_s=4.0).result
     # the budget ended the search after one round (no budget: creep and the delay, six rejected)
     assert [r["why"] for r in idle["rejected"]] == ["time budget reached after 1 round(s): no further candidates searched"]
     assert idle["final"]["effects"] == ["time_delay"]
