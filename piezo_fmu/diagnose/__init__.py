@@ -38,8 +38,10 @@ def diagnose(recordings, model=None, out=None, *, force=False, columns=None, sca
     figures : bool
         Write the PNG figures (report.html embeds them).
     time_budget_s : float or None
-        Seconds of analysis after which no further candidate search is started (what was found
-        stays; diagnosis.json says so); ``None``: no limit.
+        Search budget [s of the reference machine]: after that much work no further candidate
+        search is started (what was found stays; diagnosis.json says so); ``None``: no limit.
+        Counted as work (samples simulated), not time, so the result does not depend on the
+        machine or its load.
 
     Returns
     -------
