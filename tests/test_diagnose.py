@@ -743,7 +743,7 @@ def test_recognition_scores_count_names_hidden_mechanisms_and_kinds():
     assert "| hysteresis_shape: knee | 100 % (1/1) |" in table and "recognised 50 %" in table
 
 
-def test_the_search_budget_is_work_so_a_busy_machine_searches_the_same(tmp_path, monkeypatch):
+def test_the_search_budget_is_work_so_a_busy_machine_searches_the_same(monkeypatch):
     # a budget small enough to end the search early: on an idle machine, and on one whose CPU clock
     # runs 1000 s per reading (a machine busy with other jobs, or very slow), the same candidates
     # are searched and the same result comes out (a CPU-time budget ends the second at once)
