@@ -644,6 +644,40 @@ def test_a_further_mode_at_the_devices_first_mode_is_recalibrated_not_named():
     assert any(r["effect"] == "extra_resonance" and "first mode" in r["why"] for r in res["rejected"])
 
 
+def test_a_further_mode_that_does_not_ring_at_its_frequency_is_not_named():
+    # rig-040: a Krasnosel'skii-Pokrovskii device at 442 Hz with a one-sample command delay. A
+    # "further mode" at 164 Hz (zeta 0.12) was named: 1 % of what it changed lay near 164 Hz, the
+    # rest reshaped the response elsewhere. A further mode must ring at its own frequency
+    from piezo_fmu.diagnose.catalogue import MODE_OWN_BAND
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-040")
+    assert rec.truth["mechanisms"] == ["time_delay"]
+    res = analyse(raw).result
+    assert "extra_resonance" not in res["final"]["effects"], res["findings"]
+    why = [r["why"] for r in res["rejected"] if r["effect"] == "extra_resonance"]
+    assert any("does not ring at its own frequency" in w for w in why), why
+    share = float(why[0].split("only ")[1].split(" %")[0]) / 100
+    assert share < MODE_OWN_BAND / 5
+
+
+def test_a_lone_fast_creep_element_is_not_called_creep():
+    # rig-140: a clean Bouc-Wen device driven by multisines up to 195 Hz. A single creep element of
+    # 3.2 ms (gain 0.15) was named at confidence 0.80: the loop's different gain for the small fast
+    # and the large slow parts of the command, not the slow motion after input changes
+    from piezo_fmu.diagnose.catalogue import CREEP_SLOWEST_S
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-140")
+    assert rec.truth["mechanisms"] == [] and rec.truth["control"] is None
+    res = analyse(raw).result
+    assert res["final"]["effects"] == [] and res["candidates"] == [], res["findings"]
+    assert res["final"]["nothing_missing"], res["final"]["verdict"]
+    why = [r["why"] for r in res["rejected"] if r["effect"] == "creep"]
+    assert why and "slowest element" in why[0], why
+    assert float(why[0].split("(")[1].split(" ms")[0]) * 1e-3 < CREEP_SLOWEST_S
+
+
 def test_a_slow_creep_element_is_not_called_a_drift():
     # synth-1053 (the recognition study's case): creep with two elements, 0.31 s and 3.6 s (the
     # slower as long as the record, so under a unipolar drive it grows almost like a trend), and

@@ -199,6 +199,15 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
     return None
 
 
+# creep is the slow motion after input changes: its slowest Kelvin element is at least this slow [s]
+# (rig creep is logarithmic from t0 = 5-200 ms: fits to it pair an element of 8-600 ms with a
+# slower one; a lone element of 3 ms on a clean Bouc-Wen device, rig-140, was the loop's
+# different gain for the fast and slow parts of a multisine)
+CREEP_SLOWEST_S = 0.05
+# a further mode rings at its own frequency: at least this share of what it changes lies within
+# f_n / 1.25 .. 1.25 f_n (rig survey, 2026-11-25: true modes 0.38-0.99, the further "modes" named
+# on rig-004, rig-040 and the clean rig-125, each reshaping the first mode's response, 0.001-0.010)
+MODE_OWN_BAND = 0.1
 SHAPE_GRID = 6        # steps of the KP cells' Preisach grid over the recorded stack voltages (21 cells)
 SHAPE_GRID_FINE = 8   # the finer grid a named shape may ask for next (36 cells)
 
@@ -370,6 +379,25 @@ def _own_channel_share(fitter: Fitter, p0, p1, ch):
     return (mse[0] - mse[1]) / structured
 
 
+def _mode_band_share(fitter: Fitter, p, f, width=1.25):
+    """Share of what the further mode of ``p`` itself changes (``p`` against ``p`` without it, every
+    other value kept) that lies within ``f / width .. f * width`` [Hz], over every recorded channel
+    (energies of the change's spectrum, its mean removed). A lightly damped mode rings at its own
+    frequency; a "mode" that changes the response mostly elsewhere reshapes another part of it."""
+    q = p.copy()
+    q.res = None
+    near = total = 0.0
+    for r in fitter.recs:
+        a, b = predict(r, fitter.dev, p, direct=True), predict(r, fitter.dev, q, direct=True)
+        for c in r.channels():
+            d = a[c] - b[c]
+            spec = np.abs(np.fft.rfft((d - np.mean(d)) * np.hanning(d.size))) ** 2
+            fr = np.fft.rfftfreq(d.size, r.dt)
+            near += float(np.sum(spec[(fr >= f / width) & (fr <= f * width)]))
+            total += float(np.sum(spec[1:]))
+    return near / total if total > 0 else 0.0
+
+
 def _drift_in_sensor(fitter: Fitter, p):
     """How much of the fitted displacement drift also shows in the sensor residual, relative to a
     trend of the force itself (1: all of it, 0: none); ``None`` without a sensor channel."""
@@ -438,6 +466,11 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
         if "x" in ch and "us" in ch and ch["us"]["explained"] > 0.3 and ch["x"]["explained"] < 0.05 \
                 and ch["x"]["structured_before"] > 2 * ch["x"]["noise"]:
             return False, "helps the sensor voltage only, which creep cannot do (creep moves both)"
+        slowest = max(t for _, t in p_after.creep)
+        if slowest < CREEP_SLOWEST_S:
+            return False, (f"its slowest element ({1e3 * slowest:.3g} ms) is faster than "
+                           f"{1e3 * CREEP_SLOWEST_S:.0f} ms: a rate-dependent gain of the loop (how fast and "
+                           "slow parts of the command move it), not the slow motion after input changes")
         if tau > 4.5 * T:
             return True, f"time constant {tau:.3g} s is longer than the recording: creep or drift"
         return True, ""
@@ -471,6 +504,11 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
             return False, f"damping ratio {z:.2f}: not a lightly damped mode (it only adds phase lag)"
         if f > 0.45 / dt:
             return False, "above the Nyquist frequency"
+        share = _mode_band_share(fitter, p_after, f)
+        if share < MODE_OWN_BAND:
+            return False, (f"only {100 * share:.1f} % of what it changes lies within {f / 1.25:.4g}-"
+                           f"{f * 1.25:.4g} Hz: it does not ring at its own frequency, it reshapes the "
+                           "response elsewhere (near the first mode, or the lag)")
         f1 = p_after.mode(fitter.dev)[0]
         if "mech_f" in fitter.ordinary and abs(math.log(f / f1)) < math.log(1.2):
             return False, (f"at the first mode ({f1:.4g} Hz, recalibrated): it re-fits that mode, it is "
