@@ -40,7 +40,7 @@ def at_bound(fitter: Fitter, p, names):
     """The parameters among ``names`` whose fitted value sits at a bound of its search range."""
     out = []
     for n in names:
-        lo, hi = fitter.bounds(n)
+        lo, hi = fitter.bounds(n, p)
         v = get_value(p, n, fitter.dev)
         span = math.log(hi / lo)
         x = math.log(max(v, 1e-300) / lo) / span if span > 0 else 0.5

@@ -127,7 +127,7 @@ def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
     if changed:
         rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 20, held=False).params
         f, z = rc.params.mode(fitter.dev)
-        if "mech_f" in fitter.ordinary and (_edge(fitter, "mech_f", f) or _edge(fitter, "mech_zeta", z)):
+        if "mech_f" in fitter.ordinary and (_edge(fitter, "mech_f", f) or _edge(fitter, "mech_zeta", z, rc.params)):
             # settled at the end of its range: not a mode the data see (a lag or a delay passing for one)
             drop(fitter, rc, "mode", why=f"settled at the end of its search range ({f:.4g} Hz, zeta {z:.3g})")
             rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 12).params
@@ -201,8 +201,8 @@ def _promise(fitter, q0, q1):
     return fitter.n_eff * math.log(max(q0, 1e-300) / max(q1, 1e-300))
 
 
-def _edge(fitter, name, v):
-    lo, hi = fitter.bounds(name)
+def _edge(fitter, name, v, p=None):
+    lo, hi = fitter.bounds(name, p)
     span = math.log(hi / lo)
     return math.log(v / lo) < 0.01 * span or math.log(hi / v) < 0.01 * span
 
@@ -266,7 +266,7 @@ def _mode(fitter, rc, struct, sat):
     best = min(tried, key=lambda fr: fr.cost)
     gain, _ = _gain(fitter, p, best.params, 2 + (best.params.pick != p.pick))
     f_fit, z_fit = best.params.mode(fitter.dev)
-    edge = _edge(fitter, "mech_f", f_fit) or _edge(fitter, "mech_zeta", z_fit)
+    edge = _edge(fitter, "mech_f", f_fit) or _edge(fitter, "mech_zeta", z_fit, best.params)
     if gain > ACCEPT["dbic"] and not edge:
         q = best.params
         fitter.ordinary = fitter.ordinary + ["mech_f", "mech_zeta"]
@@ -305,7 +305,7 @@ def mode_at(fitter: Fitter, p, struct: Structure, f, zeta, without_items=()):
         if best is None or fr.cost < best.cost:
             best = fr
     f_fit, z_fit = best.params.mode(fitter.dev)
-    if _edge(fitter, "mech_f", f_fit) or _edge(fitter, "mech_zeta", z_fit):
+    if _edge(fitter, "mech_f", f_fit) or _edge(fitter, "mech_zeta", z_fit, best.params):
         return None
     return best
 
@@ -486,7 +486,7 @@ def uncertainty(fitter: Fitter, p, struct, names):
         q = p.copy()
         v = get_value(q, n, fitter.dev)
         h = 1e-3
-        hi = fitter.bounds(n)[1]
+        hi = fitter.bounds(n, p)[1]
         if v * math.exp(h) > hi:
             h = -h
         set_value(q, n, v * math.exp(h), fitter.dev)
