@@ -10,8 +10,8 @@ paper's structure in ordinary ways. None of that is missing physics, so all of i
    nominal pattern of thresholds at the device's voltages), each kept when it beats the start
    clearly;
 3. the mechanics' **first mode** (frequency 100 Hz - 20 kHz via the moving mass, damping via
-   ``c``: up to 0.35, or 0.9 with the contact force, see :meth:`.fit.Fitter.bounds`) together with **what the sensor channel follows** (:data:`PICKOFFS`: the stack's blocked
-   force, the contact force between stack and push rod, or the load spring's force, i.e. the
+   ``c``: up to 0.35, or 0.9 with the contact force, see :meth:`.fit.Fitter.bounds`) together
+   with **what the sensor channel follows** (:data:`PICKOFFS`: the stack's blocked force, the contact force between stack and push rod, or the load spring's force, i.e. the
    push-rod displacement): a grid, then a joint fit of the best points. Kept only when the data
    see it (the fit beats the nominal mode clearly); otherwise the nominal mode stays and the
    report says it was not visible;
@@ -127,7 +127,8 @@ def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
     if changed:
         rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 20, held=False).params
         f, z = rc.params.mode(fitter.dev)
-        if "mech_f" in fitter.ordinary and (_edge(fitter, "mech_f", f) or _edge(fitter, "mech_zeta", z, rc.params)):
+        if "mech_f" in fitter.ordinary and (_edge(fitter, "mech_f", f)
+                                            or _edge(fitter, "mech_zeta", z, rc.params)):
             # settled at the end of its range: not a mode the data see (a lag or a delay passing for one)
             drop(fitter, rc, "mode", why=f"settled at the end of its search range ({f:.4g} Hz, zeta {z:.3g})")
             rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 12).params
