@@ -11,8 +11,9 @@ paper's structure in ordinary ways. None of that is missing physics, so all of i
    clearly;
 3. the mechanics' **first mode** (frequency 100 Hz - 20 kHz via the moving mass, damping via
    ``c``: up to 0.35, or 0.9 with the contact force, see :meth:`.fit.Fitter.bounds`) together
-   with **what the sensor channel follows** (:data:`PICKOFFS`: the stack's blocked force, the contact force between stack and push rod, or the load spring's force, i.e. the
-   push-rod displacement): a grid, then a joint fit of the best points. Kept only when the data
+   with **what the sensor channel follows** (:data:`PICKOFFS`: the stack's blocked force, the
+   contact force between stack and push rod, or the load spring's force, i.e. the push-rod
+   displacement): a grid, then a joint fit of the best points. Kept only when the data
    see it (the fit beats the nominal mode clearly); otherwise the nominal mode stays and the
    report says it was not visible;
 4. the amplifier's **order**: a second lag stage ``tau_2`` kept when it beats a first-order
