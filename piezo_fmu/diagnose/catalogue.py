@@ -208,6 +208,7 @@ CREEP_SLOWEST_S = 0.05
 # f_n / 1.25 .. 1.25 f_n (rig survey, 2026-11-25: true modes 0.38-0.99, the further "modes" named
 # on rig-004, rig-040 and the clean rig-125, each reshaping the first mode's response, 0.001-0.010)
 MODE_OWN_BAND = 0.1
+MODE_BAND_WIDTH = 1.25   # that band: f_n / width .. f_n * width
 SHAPE_GRID = 6        # steps of the KP cells' Preisach grid over the recorded stack voltages (21 cells)
 SHAPE_GRID_FINE = 8   # the finer grid a named shape may ask for next (36 cells)
 
@@ -379,7 +380,7 @@ def _own_channel_share(fitter: Fitter, p0, p1, ch):
     return (mse[0] - mse[1]) / structured
 
 
-def _mode_band_share(fitter: Fitter, p, f, width=1.25):
+def _mode_band_share(fitter: Fitter, p, f, width=MODE_BAND_WIDTH):
     """Share of what the further mode of ``p`` itself changes (``p`` against ``p`` without it, every
     other value kept) that lies within ``f / width .. f * width`` [Hz], over every recorded channel
     (energies of the change's spectrum, its mean removed). A lightly damped mode rings at its own
@@ -506,9 +507,10 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
             return False, "above the Nyquist frequency"
         share = _mode_band_share(fitter, p_after, f)
         if share < MODE_OWN_BAND:
-            return False, (f"only {100 * share:.1f} % of what it changes lies within {f / 1.25:.4g}-"
-                           f"{f * 1.25:.4g} Hz: it does not ring at its own frequency, it reshapes the "
-                           "response elsewhere (near the first mode, or the lag)")
+            return False, (f"only {100 * share:.1f} % of what it changes lies within "
+                           f"{f / MODE_BAND_WIDTH:.4g}-{f * MODE_BAND_WIDTH:.4g} Hz: it does not ring at its "
+                           "own frequency, it reshapes the response elsewhere (near the first mode, or "
+                           "the lag)")
         f1 = p_after.mode(fitter.dev)[0]
         if "mech_f" in fitter.ordinary and abs(math.log(f / f1)) < math.log(1.2):
             return False, (f"at the first mode ({f1:.4g} Hz, recalibrated): it re-fits that mode, it is "

@@ -243,8 +243,9 @@ class Fitter:
             # a mode, not a lag: in the displacement and a load pick-off more damping is the
             # amplifier's order (or a delay); the contact force also carries the mode's damping force
             # c v, which no lag draws, so there the mechanics may be heavily damped (rig-014: a mode
-            # of 1.4 kHz, zeta 0.28, 11 noise rms in the force, fitted as zeta 0.5-0.8 with k_f/k_a
-            # and the sampling unknown)
+            # of 1.4 kHz, zeta 0.28, 11 noise rms in the force, far above the drive's band: the data
+            # fix its low-frequency term 2 zeta / w_n better than f_n and zeta apart, and the fit
+            # settles at zeta 0.5-0.8, with the true k_f / k_a as well)
             return 0.003, (0.9 if p is not None and p.pick == "contact" else 0.35)
         if name.startswith("creep_g"):
             return 1e-4, 3.0
