@@ -772,7 +772,7 @@ def test_a_loop_shape_of_another_kind_is_named_and_the_fmus_run_it(tmp_path):
 
 
 def test_recognition_scores_count_names_hidden_mechanisms_and_kinds():
-    # four hand-made case results whose counts are known: the study's figures are these sums
+    # five hand-made case results whose counts are known: the study's figures are these sums
     from piezo_fmu.diagnose.scoring import markdown, summarise
 
     results = [
@@ -784,21 +784,30 @@ def test_recognition_scores_count_names_hidden_mechanisms_and_kinds():
          "named": ["creep", "thermal_drift"], "confidence": {"creep": 0.8, "thermal_drift": 0.6}},
         {"group": "clean", "truth": [], "named": ["time_delay"], "seconds": 8.0, "nothing_missing": False,
          "confidence": {"time_delay": 0.55}},
+        # a miss the case's verdict hides: "nothing is missing" with creep in the recording
+        {"group": "single", "truth": ["creep"], "named": [], "seconds": 1.0, "nothing_missing": True},
     ]
     s = summarise(results, ["creep", "time_delay", "thermal_drift", "hysteresis_shape"])
-    assert s["recognition_rate"] == pytest.approx(2 / 4)            # shape once, creep; not the delay, not shape
-    assert s["false_name_case_rate"] == pytest.approx(1 / 4)        # the hidden drift is no false name
+    assert s["recognition_rate"] == pytest.approx(2 / 5)            # shape once, creep once; not the delay
+    assert s["false_name_case_rate"] == pytest.approx(1 / 5)        # the hidden drift is no false name
+    assert s["silent_miss_case_rate"] == pytest.approx(1 / 5)
     assert s["clean_nothing_missing_rate"] == 0.0
-    assert s["by_effect"]["hysteresis_shape"] == {"true": 2, "recognised": 1, "named_wrongly": 0, "candidate": 1}
+    assert s["by_effect"]["hysteresis_shape"] == {"true": 2, "recognised": 1, "named_wrongly": 0, "candidate": 1,
+                                                  "silent": 0}
+    assert s["by_effect"]["creep"] == {"true": 2, "recognised": 1, "named_wrongly": 0, "candidate": 0, "silent": 1}
     assert s["by_effect"]["time_delay"]["named_wrongly"] == 1
+    assert s["by_effect"]["time_delay"]["silent"] == 0                 # missed beside a flagged residual
     assert s["by_variant"] == {"hysteresis_shape: knee": {"true": 1, "recognised": 1},
                                "hysteresis_shape: level_width": {"true": 1, "recognised": 0}}
     assert (s["named_right"], s["named_total"]) == (3, 4)
     band = {tuple(b["band"]): b for b in s["calibration"]}
     assert band[(0.5, 0.75)]["reported"] == 2 and band[(0.5, 0.75)]["right"] == 1
-    assert (s["median_seconds"], s["max_seconds"]) == (5.0, 8.0)
+    assert (s["median_seconds"], s["max_seconds"]) == (4.0, 8.0)
     table = markdown(s)
-    assert "| hysteresis_shape: knee | 100 % (1/1) |" in table and "recognised 50 %" in table
+    assert "| hysteresis_shape: knee | 100 % (1/1) |" in table and "recognised 40 %" in table
+    # missed: a candidate 1 (shape), the delay's residual flagged 1, creep silently 1
+    assert "| time_delay | 0 % (0/1) | 1 | 0 | 1 | 0 |" in table and "| creep | 50 % (1/2) | 0 | 0 | 0 | 1 |" in table
+    assert "silent miss" in table and "20.0 %" in table
 
 
 def test_the_search_budget_is_work_so_a_busy_machine_searches_the_same(monkeypatch):

@@ -8,6 +8,10 @@ case ``group`` (clean, single, pair, control, one channel), ``named`` (``final.e
 * **recognised**: visible true mechanisms named, over all visible true mechanisms;
 * **false names**: cases with a name that is neither true nor hidden (a control's name never is);
 * **nothing is missing**: clean cases with that verdict;
+* **how a miss ends**: a visible true mechanism not named is reported as a candidate (below the
+  naming confidence), or its case ends with a structured residual flagged as unexplained, or the
+  case says "nothing is missing" (a *silent* miss: the recalibrated ordinary physics, or another
+  mechanism, absorbed it down to the noise, so the recording gave no sign of it to a user);
 * **confidence calibration**: every reported mechanism (findings and candidates) by confidence
   band, and how often it was right (true or hidden);
 * per mechanism and per group;
@@ -31,9 +35,15 @@ def _pct(a, b):
     return f"{100 * a / b:.0f} % ({a}/{b})" if b else "-"
 
 
+def _effect_row():
+    # candidate: missed but reported below the naming confidence; silent: missed, not a candidate,
+    # and the case says "nothing is missing"; the rest of the misses end in a flagged residual
+    return {"true": 0, "recognised": 0, "named_wrongly": 0, "candidate": 0, "silent": 0}
+
+
 def summarise(results, catalogue):
     s = {"cases": len(results), "by_effect": {}, "by_group": {}, "by_variant": {}, "calibration": []}
-    tp = fn = fp_cases = 0
+    tp = fn = fp_cases = silent_cases = 0
     reported = []
     for r in results:
         truth, hidden = set(r["truth"]), set(r.get("hidden", []))
@@ -47,24 +57,25 @@ def summarise(results, catalogue):
         g["all_right"] += (named - hidden == truth)
         g["nothing_missing"] += bool(r.get("nothing_missing"))
         g["errors"] += bool(r.get("error"))
+        silent_cases += bool(truth - named) and bool(r.get("nothing_missing"))
         for e in truth:
             hit = e in named
             tp += hit
             fn += not hit
             g["true"] += 1
             g["recognised"] += hit
-            be = s["by_effect"].setdefault(e, {"true": 0, "recognised": 0, "named_wrongly": 0, "candidate": 0})
+            be = s["by_effect"].setdefault(e, _effect_row())
             be["true"] += 1
             be["recognised"] += hit
             be["candidate"] += (not hit) and e in r.get("candidates", {})
+            be["silent"] += (not hit) and e not in r.get("candidates", {}) and bool(r.get("nothing_missing"))
             kind = (r.get("variants") or {}).get(e)
             if kind:
                 bv = s["by_variant"].setdefault(f"{e}: {kind}", {"true": 0, "recognised": 0})
                 bv["true"] += 1
                 bv["recognised"] += hit
         for e in wrong:
-            s["by_effect"].setdefault(e, {"true": 0, "recognised": 0, "named_wrongly": 0, "candidate": 0})
-            s["by_effect"][e]["named_wrongly"] += 1
+            s["by_effect"].setdefault(e, _effect_row())["named_wrongly"] += 1
         for e, c in list(r.get("confidence", {}).items()) + list(r.get("candidates", {}).items()):
             reported.append((c, e in truth or e in hidden, e in named))
     for lo, hi in BANDS:
@@ -77,6 +88,7 @@ def summarise(results, catalogue):
     s["named_total"] = len(named_rows)
     s["recognition_rate"] = tp / max(tp + fn, 1)
     s["false_name_case_rate"] = fp_cases / max(len(results), 1)
+    s["silent_miss_case_rate"] = silent_cases / max(len(results), 1)
     clean = s["by_group"].get("clean", {})
     s["clean_nothing_missing_rate"] = clean.get("nothing_missing", 0) / max(clean.get("cases", 0), 1)
     ctrl = s["by_group"].get("control", {})
@@ -93,12 +105,16 @@ def markdown(s, title=""):
     lines = []
     if title:
         lines += [f"**{title}**", ""]
-    lines += ["| mechanism | recognised | named where absent (cases) | missed but a candidate |", "|---|---|---|---|"]
+    lines += ["| mechanism | recognised | named where absent (cases) | missed: a candidate | missed: residual "
+              "flagged | missed silently |", "|---|---|---|---|---|---|"]
     for e in s["catalogue"]:
         b = s["by_effect"].get(e)
         if not b:
             continue
-        lines.append(f"| {e} | {_pct(b['recognised'], b['true'])} | {b['named_wrongly']} | {b['candidate']} |")
+        missed = b["true"] - b["recognised"]
+        silent = b.get("silent", 0)
+        lines.append(f"| {e} | {_pct(b['recognised'], b['true'])} | {b['named_wrongly']} | {b['candidate']} | "
+                     f"{missed - b['candidate'] - silent} | {silent} |")
     if s.get("by_variant"):
         lines += ["", "| mechanism: kind put in | recognised |", "|---|---|"]
         lines += [f"| {k} | {_pct(b['recognised'], b['true'])} |" for k, b in sorted(s["by_variant"].items())]
@@ -118,7 +134,9 @@ def markdown(s, title=""):
         lines.append(f"| {lo:.2f}-{hi:.2f} | {row['reported']} | {_pct(row['right'], row['reported'])} | {mc} |")
     lines += ["", (f"Overall: recognised {100 * s['recognition_rate']:.0f} %; cases with a false name "
                    f"{100 * s['false_name_case_rate']:.1f} %; clean cases \"nothing is missing\" "
-                   f"{100 * s['clean_nothing_missing_rate']:.0f} %; controls named {s['controls_named']}; named "
+                   f"{100 * s['clean_nothing_missing_rate']:.0f} %; cases with a silent miss (a true "
+                   f"mechanism missed where the verdict is \"nothing is missing\") "
+                   f"{100 * s.get('silent_miss_case_rate', 0.0):.1f} %; controls named {s['controls_named']}; named "
                    f"mechanisms right {_pct(s['named_right'], s['named_total'])}; {s['cases']} cases, "
                    f"{s['errors']} errors; seconds per case median {s['median_seconds']:.1f}, "
                    f"max {s['max_seconds']:.1f}.")]
