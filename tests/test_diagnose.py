@@ -685,23 +685,6 @@ def test_a_further_mode_that_does_not_ring_at_its_frequency_is_not_named():
     assert share < MODE_OWN_BAND / 5
 
 
-def test_a_current_limit_is_screened_from_weights_fitted_to_other_dynamics():
-    # rig-145: a Bouc-Wen device driven by steps and a chirp through an amplifier whose current
-    # limit slows every step (7 % of the unlimited slew). The recalibration's weights were fitted
-    # to a lag standing in for the limit; re-solved at the true slew, the saturation's full
-    # Gauss-Newton step from them raised the cost 2500-fold, so the limit screened worst of all and
-    # was never fitted. From such weights a step that raises the cost more than OVERSHOOT-fold is
-    # damped, and a screening keeps the held weights when re-solving screens worse
-    from piezo_fmu.diagnose.run import analyse
-
-    rec, raw = _rig_recording("rig-145")
-    assert rec.truth["mechanisms"] == ["amplifier_current_limit"]
-    res = analyse(raw).result
-    assert res["final"]["effects"] == ["amplifier_current_limit"], (res["findings"], res["rejected"])
-    before, after = res["baseline"]["rmse"]["x"], res["final"]["rmse"]["x"]
-    assert after < before / 3, (before, after)           # 0.140 -> 0.028 um held out (noise 0.017)
-
-
 def test_a_lone_fast_creep_element_is_not_called_creep():
     # rig-140: a clean Bouc-Wen device driven by multisines up to 195 Hz. A single creep element of
     # 3.2 ms (gain 0.15) was named at confidence 0.80: the loop's different gain for the small fast

@@ -18,7 +18,7 @@ import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
 from .engine import Params, predict, replay
-from .varpro import OVERSHOOT, residuals, solve_linear
+from .varpro import residuals, solve_linear
 
 __all__ = ["FitResult", "Fitter", "Structure"]
 
@@ -359,13 +359,8 @@ class Fitter:
             out.append(math.sqrt(self.lam[ch]) * e)
         return np.concatenate(out)
 
-    def fit(self, p0: Params, struct: Structure, free=None, max_nfev=12, ftol=1e-5, held=False, cold=False):
+    def fit(self, p0: Params, struct: Structure, free=None, max_nfev=12, ftol=1e-5, held=False):
         """Fit the nonlinear parameters ``free`` (default: all of ``struct``).
-
-        ``cold``: the weights of ``p0`` were fitted to other dynamics (a candidate's proposal): their
-        re-solves damp a saturation step that overshoots (see :func:`.varpro.solve_linear`). Not
-        in the recalibration's warm-started searches, where damping left weights short of their
-        optimum (rig-041: a 10 times worse recalibrated fit).
 
         ``held``: two rounds of a search with the PI weights held (:meth:`held`), the weights
         re-solved exactly between them and at the end - a tenth of the cost of variable projection
@@ -378,37 +373,29 @@ class Fitter:
             nfev = 0
             t0 = time.perf_counter()
             for rnd in range(2):
-                fr = self._fit(p, struct, free, max_nfev if rnd == 0 else max(4, max_nfev // 2), ftol, True,
-                               cold and rnd == 0)
+                fr = self._fit(p, struct, free, max_nfev if rnd == 0 else max(4, max_nfev // 2), ftol, True)
                 p = fr.params
                 nfev += fr.nfev
-            return self._guard(p0, p, struct, nfev, t0, cold)
-        return self._fit(p0, struct, free, max_nfev, ftol, False, cold)
+            return self._guard(p0, p, struct, nfev, t0)
+        return self._fit(p0, struct, free, max_nfev, ftol, False)
 
-    def _guard(self, p0, p, struct, nfev, t0, cold=False):
-        """``p`` settled (weights re-solved), or the start when that was better; the start as it
-        came when both cost more than ``OVERSHOOT`` times as much: a re-solve's saturation step can
-        overshoot (rig-145: after a current limit was added, the re-fit's re-solves raised the cost
-        from 1.2e4 to 3.9e9). (Only then: a start as it came that is a little better changes the
-        search's path, rig-046.)"""
-        self.varpro(p, struct, gn_iter=2, cold=cold)
+    def _guard(self, p0, p, struct, nfev, t0):
+        """``p`` settled (weights re-solved), or the start when that was better."""
+        self.varpro(p, struct, gn_iter=2, cold=True)
         c = self.cost(p)
         start = p0.copy()
-        self.varpro(start, struct, gn_iter=2, cold=cold)
+        self.varpro(start, struct, gn_iter=2, cold=True)
         c0 = self.cost(start)
         if c0 < c:
             p, c = start, c0
-        c_given = self.cost(p0)
-        if c > OVERSHOOT * c_given:
-            p, c = p0.copy(), c_given
         return FitResult(p, struct, c, nfev, time.perf_counter() - t0)
 
-    def _fit(self, p0: Params, struct: Structure, free, max_nfev, ftol, held, cold=False):
+    def _fit(self, p0: Params, struct: Structure, free, max_nfev, ftol, held):
         t0 = time.perf_counter()
         n0 = self.n_eval
         p = p0.copy()
         if held:
-            self.varpro(p, struct, cold=cold)
+            self.varpro(p, struct, cold=True)
         evaluate = self.held if held else self.varpro
         free = list(free if free is not None else free_names(struct, self.ordinary))
         lo = np.array([math.log(self.bounds(n, p)[0]) for n in free])
@@ -451,7 +438,7 @@ class Fitter:
             for n, v in zip(free, sol.x):
                 set_value(p, n, math.exp(v), self.dev)
         # a fit never returns worse than where it started (restarts, saturation's Gauss-Newton steps)
-        return self._guard(p0, p, struct, self.n_eval - n0, t0, cold)
+        return self._guard(p0, p, struct, self.n_eval - n0, t0)
 
     def fit_scalar(self, p0: Params, struct: Structure, name, quick=False, bounds=None, xatol=0.02):
         """Bounded 1-D search of one parameter (log coordinates); other parameters held."""

@@ -226,7 +226,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 if st is None:
                     continue
                 free = _free(fitter, name, struct, s_new, dropped0)
-                fr = fitter.fit(st, s_new, free=free, max_nfev=10, held=name in FAST, cold=True)
+                fr = fitter.fit(st, s_new, free=free, max_nfev=10, held=name in FAST)
                 if name == "time_delay":
                     # the screening's integer delay trades off against the lag: step it, then re-fit
                     q = refine_delay(fitter, fr.params, s_new)
