@@ -283,7 +283,7 @@ class Fitter:
                 self._replays[key] = rp
         return rp
 
-    def varpro(self, p: Params, struct: Structure, gn_iter=1, cold=False):
+    def varpro(self, p: Params, struct: Structure, gn_iter=1):
         """Re-solve the linear parameters of ``p`` in place; return the weighted training residual.
 
         One Gauss-Newton step for the saturation per call: the weights are warm from the previous
@@ -292,7 +292,7 @@ class Fitter:
         # the operators' and cells' columns are solved for: a pass per four columns on top
         self.spend(2.0 + (len(p.weights) + p.n_cell_cols) / 4.0)
         return solve_linear(self.recs, self.dev, p, self.lam, drift_terms=struct.drift_terms,
-                            replays=self.replays(p), gn_iter=gn_iter, cold=cold)
+                            replays=self.replays(p), gn_iter=gn_iter)
 
     def cost(self, p: Params, rows="train"):
         r = residuals(self.recs, self.dev, p, self.lam, self.replays(p), rows=rows)
@@ -381,10 +381,10 @@ class Fitter:
 
     def _guard(self, p0, p, struct, nfev, t0):
         """``p`` settled (weights re-solved), or the start when that was better."""
-        self.varpro(p, struct, gn_iter=2, cold=True)
+        self.varpro(p, struct, gn_iter=2)
         c = self.cost(p)
         start = p0.copy()
-        self.varpro(start, struct, gn_iter=2, cold=True)
+        self.varpro(start, struct, gn_iter=2)
         c0 = self.cost(start)
         if c0 < c:
             p, c = start, c0
@@ -395,7 +395,7 @@ class Fitter:
         n0 = self.n_eval
         p = p0.copy()
         if held:
-            self.varpro(p, struct, cold=True)
+            self.varpro(p, struct)
         evaluate = self.held if held else self.varpro
         free = list(free if free is not None else free_names(struct, self.ordinary))
         lo = np.array([math.log(self.bounds(n, p)[0]) for n in free])
@@ -460,15 +460,6 @@ class Fitter:
         f(sol.x)
         return p, float(sol.fun)
 
-    def resolved(self, p: Params, struct: Structure, drift=False):
-        """``p`` with its linear parameters re-solved (:meth:`varpro`, on a copy), or ``p`` itself
-        when that screens better (:meth:`quick`): from weights fitted to other dynamics the
-        saturation's Gauss-Newton step can overshoot (rig-145: a current limit at its true slew
-        screened 10x worse re-solved than held)."""
-        q = p.copy()
-        self.varpro(q, struct, cold=True)
-        return q if self.quick(q, drift=drift) <= self.quick(p, drift=drift) else p
-
     def grid(self, p0: Params, setters, solve: Structure | None = None):
         """Screen a list of parameter assignments (dicts name -> value); return the best params.
 
@@ -487,8 +478,10 @@ class Fitter:
                 else:
                     set_value(p, n, v, self.dev)
             if solve is not None:
-                p = self.resolved(p, solve)
-            c = self.quick(p)
+                r = self.varpro(p, solve)
+                c = float(r @ r)
+            else:
+                c = self.quick(p)
             if c < best_c:
                 best, best_c = p, c
         return best, best_c

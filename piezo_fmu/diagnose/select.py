@@ -194,14 +194,9 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 continue
             # the screening's cost with the weights re-solved for the proposed dynamics (held
             # weights fitted to other dynamics would make a good proposal look bad)
-            # (or held, when that is better: the saturation's Gauss-Newton step from weights fitted
-            # to other dynamics can overshoot, rig-145)
-            if name != "hysteresis_shape":
-                start = fitter.resolved(start, struct.with_effect(name, 0, len(start.creep)),
-                                        drift=name == "thermal_drift") if start is not None else None
-                if alt is not None:
-                    alt = (fitter.resolved(alt[0], struct.with_effect(name, 0, len(alt[0].creep)),
-                                           drift=name == "thermal_drift"), alt[1])
+            for x in (start, alt and alt[0]):
+                if x is not None and name != "hysteresis_shape":
+                    fitter.varpro(x, struct.with_effect(name, 0, len(x.creep)))
             q = min(fitter.quick(x, drift=name == "thermal_drift") for x in (start, alt and alt[0]) if x is not None)
             screened.append((q0 - q, name, start, alt))
         screened.sort(key=lambda s: -s[0])

@@ -41,7 +41,7 @@ def _design(rec, dev, p, rp, lin_w):
 
 
 def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_sensor_gain=True,
-                 replays=None, gn_iter=2, rows="train", want_residuals=True, cold=False):
+                 replays=None, gn_iter=2, rows="train", want_residuals=True):
     """Fit the PI weights (and the KP cells' weights), offsets, drift and sensor gain for fixed
     dynamics; update ``p`` in place.
 
@@ -51,10 +51,6 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
     (bilinear with the weights) is alternated with them; strain saturation is handled by
     Gauss-Newton steps from the current weights. Everything after the design matrices works on
     their small Gram matrices. Returns the weighted residual vector (training rows).
-
-    ``cold``: the weights of ``p`` were fitted to other dynamics (a candidate's proposal): a
-    saturation step that raises the cost more than ``OVERSHOOT``-fold is damped, with or without
-    KP cells.
     """
     replays = replays or [replay(r, dev, p) for r in recs]
     n = len(p.thresholds)
@@ -77,12 +73,8 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
     # the channel offsets take the shift back: free for the linearised problem, not for the
     # saturation (a full step moved the stroke by 12 um and the cost rose 3e4 -> 5e6, rig-052).
     # Without cells the full step stays: halved steps left a screening whose weights had to move
-    # far short of them, and a first mode went unseen (rig-046; so did damping every rise of the
-    # cost, in the warm-started searches of the recalibration). From weights fitted to other
-    # dynamics (``cold``) a step that raises the cost more than OVERSHOOT-fold is damped: the full
-    # step raised a current limit's cost at its true slew 2500-fold (rig-145: never found)
-    damped = math.isfinite(p.y_sat) and (p.n_cells > 0 or cold)
-    rise = 1.0 if p.n_cells > 0 else OVERSHOOT
+    # far short of them, and a first mode went unseen (rig-046)
+    damped = math.isfinite(p.y_sat) and p.n_cells > 0
     r_last = residuals(recs, dev, p, lam, replays) if (damped and lin_w is not None) else None
     for _ in range(iters):
         before = _linear_state(p)
@@ -123,7 +115,7 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
         _solve_into(p, grams, dims, lam, hint, before, prior, 0.0)
         if damped:
             r_new = residuals(recs, dev, p, lam, replays)
-            if r_last is not None and r_new @ r_new > rise * (r_last @ r_last):
+            if r_last is not None and r_new @ r_new > r_last @ r_last:
                 # Levenberg-Marquardt: the step held towards where it started, more and more
                 for lm in LM_STEPS:
                     _solve_into(p, grams, dims, lam, hint, before, prior, lm)
@@ -142,7 +134,6 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
     return residuals(recs, dev, p, lam, replays)
 
 
-OVERSHOOT = 2.0    # from cold weights, without KP cells: a saturation step is damped when it raises the cost this much
 LM_STEPS = (1e-4, 1e-2, 1.0, 100.0)   # Levenberg-Marquardt terms tried (scaled coordinates) after a failed step
 
 
