@@ -778,7 +778,8 @@ def test_recognition_scores_count_names_hidden_mechanisms_and_kinds():
     results = [
         {"group": "single", "truth": ["hysteresis_shape"], "named": ["hysteresis_shape"], "seconds": 2.0,
          "confidence": {"hysteresis_shape": 0.95}, "variants": {"hysteresis_shape": "knee"}},
-        {"group": "single", "truth": ["hysteresis_shape"], "named": [], "seconds": 4.0,
+        # "nothing is missing", but the missed shape is reported as a candidate: not silent
+        {"group": "single", "truth": ["hysteresis_shape"], "named": [], "seconds": 4.0, "nothing_missing": True,
          "candidates": {"hysteresis_shape": 0.3}, "variants": {"hysteresis_shape": "level_width"}},
         {"group": "pair", "truth": ["creep", "time_delay"], "hidden": ["thermal_drift"], "seconds": 6.0,
          "named": ["creep", "thermal_drift"], "confidence": {"creep": 0.8, "thermal_drift": 0.6}},

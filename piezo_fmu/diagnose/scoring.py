@@ -57,7 +57,7 @@ def summarise(results, catalogue):
         g["all_right"] += (named - hidden == truth)
         g["nothing_missing"] += bool(r.get("nothing_missing"))
         g["errors"] += bool(r.get("error"))
-        silent_cases += bool(truth - named) and bool(r.get("nothing_missing"))
+        silent_cases += bool(r.get("nothing_missing")) and any(e not in r.get("candidates", {}) for e in truth - named)
         for e in truth:
             hit = e in named
             tp += hit
