@@ -36,8 +36,7 @@ def _pct(a, b):
 
 
 def _effect_row():
-    # candidate: missed but reported below the naming confidence; silent: missed, not a candidate,
-    # and the case says "nothing is missing"; the rest of the misses end in a flagged residual
+    # a miss not counted as a candidate or silent ends in a flagged residual
     return {"true": 0, "recognised": 0, "named_wrongly": 0, "candidate": 0, "silent": 0}
 
 
@@ -57,7 +56,10 @@ def summarise(results, catalogue):
         g["all_right"] += (named - hidden == truth)
         g["nothing_missing"] += bool(r.get("nothing_missing"))
         g["errors"] += bool(r.get("error"))
-        silent_cases += bool(r.get("nothing_missing")) and any(e not in r.get("candidates", {}) for e in truth - named)
+        cands = r.get("candidates", {})
+        # missed, not even a candidate, under a "nothing is missing" verdict
+        silent = {e for e in truth - named if e not in cands} if r.get("nothing_missing") else set()
+        silent_cases += bool(silent)
         for e in truth:
             hit = e in named
             tp += hit
@@ -67,8 +69,8 @@ def summarise(results, catalogue):
             be = s["by_effect"].setdefault(e, _effect_row())
             be["true"] += 1
             be["recognised"] += hit
-            be["candidate"] += (not hit) and e in r.get("candidates", {})
-            be["silent"] += (not hit) and e not in r.get("candidates", {}) and bool(r.get("nothing_missing"))
+            be["candidate"] += (not hit) and e in cands
+            be["silent"] += e in silent
             kind = (r.get("variants") or {}).get(e)
             if kind:
                 bv = s["by_variant"].setdefault(f"{e}: {kind}", {"true": 0, "recognised": 0})
@@ -112,9 +114,8 @@ def markdown(s, title=""):
         if not b:
             continue
         missed = b["true"] - b["recognised"]
-        silent = b.get("silent", 0)
         lines.append(f"| {e} | {_pct(b['recognised'], b['true'])} | {b['named_wrongly']} | {b['candidate']} | "
-                     f"{missed - b['candidate'] - silent} | {silent} |")
+                     f"{missed - b['candidate'] - b['silent']} | {b['silent']} |")
     if s.get("by_variant"):
         lines += ["", "| mechanism: kind put in | recognised |", "|---|---|"]
         lines += [f"| {k} | {_pct(b['recognised'], b['true'])} |" for k, b in sorted(s["by_variant"].items())]
@@ -136,7 +137,7 @@ def markdown(s, title=""):
                    f"{100 * s['false_name_case_rate']:.1f} %; clean cases \"nothing is missing\" "
                    f"{100 * s['clean_nothing_missing_rate']:.0f} %; cases with a silent miss (a true "
                    f"mechanism missed where the verdict is \"nothing is missing\") "
-                   f"{100 * s.get('silent_miss_case_rate', 0.0):.1f} %; controls named {s['controls_named']}; named "
+                   f"{100 * s['silent_miss_case_rate']:.1f} %; controls named {s['controls_named']}; named "
                    f"mechanisms right {_pct(s['named_right'], s['named_total'])}; {s['cases']} cases, "
                    f"{s['errors']} errors; seconds per case median {s['median_seconds']:.1f}, "
                    f"max {s['max_seconds']:.1f}.")]
