@@ -109,6 +109,22 @@ def test_a_prepared_start_is_the_core_operators_after_the_preparation_sweep(v0):
     assert np.array_equal(initial_state(v0 * p.u_norm, p), np.zeros(r.size))
 
 
+def test_the_compiled_sos_filter_is_scipys_sosfilt_to_the_bit():
+    # the engine filters every column of the replay with its own kernel: the same recursion as
+    # scipy's, so a diagnosis gives the same numbers; rows of unlike scale, 1-D and a strided view
+    from scipy.signal import butter, sosfilt
+
+    from piezo_fmu.diagnose.engine import sos_filter
+
+    rng = np.random.default_rng(7)
+    sos = np.vstack([butter(4, 0.02, output="sos"), [[0.3, -0.1, 0.0, 1.0, -0.999, 0.0]]])
+    x = rng.normal(size=(7, 3001)) * np.logspace(-6, 3, 7)[:, None]
+    assert np.array_equal(sos_filter(sos, x), sosfilt(sos, x, axis=-1))
+    assert np.array_equal(sos_filter(sos, x[3]), sosfilt(sos, x[3]))
+    assert np.array_equal(sos_filter(sos[:1], x[:, ::2]), sosfilt(sos[:1], x[:, ::2], axis=-1))
+    assert not np.array_equal(sos_filter(sos[:1], x), sosfilt(sos, x, axis=-1))
+
+
 def test_the_linear_solve_recovers_the_weights_of_kp_cells():
     # the cells' weights (any sign) are solved with the PI's, exactly, from wrong starting values
     from piezo_fmu.core.preisach import grid_cells

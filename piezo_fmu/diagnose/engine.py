@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
-from scipy.signal import lfilter, sosfilt, ss2tf, tf2sos
+from scipy.signal import lfilter, ss2tf, tf2sos
 
 from ..core import plant
 from ..core.linear import discretize, tf2ss
@@ -52,6 +52,7 @@ __all__ = [
     "params_from_model",
     "predict",
     "shift",
+    "sos_filter",
 ]
 
 
@@ -149,7 +150,33 @@ def _kernels():
                     row[k] = s - r
         return out
 
-    return amp_run, play_run, pi_run, cell_run
+    @numba.njit(cache=True, nogil=True)
+    def sos_run(sos, x, out):
+        # scipy's sosfilt recursion (transposed direct form II, from rest), bit for bit, on every
+        # row of x at once: the samples outside, the rows inside, so the rows' independent
+        # recursions overlap (a row at a time waits on each multiply-add: 2x slower with 10 rows)
+        n, m = x.shape
+        ns = sos.shape[0]
+        z1 = np.zeros((ns, n))
+        z2 = np.zeros((ns, n))
+        for k in range(m):
+            for i in range(n):
+                out[i, k] = x[i, k]
+            for s in range(ns):
+                b0 = sos[s, 0]
+                b1 = sos[s, 1]
+                b2 = sos[s, 2]
+                a1 = sos[s, 4]
+                a2 = sos[s, 5]
+                for i in range(n):
+                    xi = out[i, k]
+                    yi = b0 * xi + z1[s, i]
+                    z1[s, i] = b1 * xi - a1 * yi + z2[s, i]
+                    z2[s, i] = b2 * xi - a2 * yi
+                    out[i, k] = yi
+        return out
+
+    return amp_run, play_run, pi_run, cell_run, sos_run
 
 
 # -- pieces of the replay -------------------------------------------------------------------------
@@ -328,12 +355,12 @@ def chain(cols, channel, dev: Device, p: Params, h):
     if settled:
         cols = cols - c0
     if front is not None:
-        acc = sosfilt(front[0], cols, axis=-1)
+        acc = sos_filter(front[0], cols)
         for f in front[1:]:
-            acc += sosfilt(f, cols, axis=-1)
+            acc += sos_filter(f, cols)
         cols = acc
     if sos is not None:
-        cols = sosfilt(sos, cols, axis=-1)
+        cols = sos_filter(sos, cols)
     if settled:
         # a sensor's leakage is not settled: the core's sensor starts charged with the first force
         # and leaks from there (Sensor.reset(F)), the step response of the leakage block
@@ -341,6 +368,16 @@ def chain(cols, channel, dev: Device, p: Params, h):
             dc = dc * np.exp(-np.arange(cols.shape[-1]) * (h / p.tau_leak))
         cols = cols + dc * c0
     return cols
+
+
+def sos_filter(sos, cols):
+    """``scipy.signal.sosfilt(sos, cols, axis=-1)`` (from rest; ``sos`` normalised, a0 = 1), the
+    same numbers, with all rows of ``cols`` filtered in one compiled pass."""
+    x = np.ascontiguousarray(cols, dtype=float)
+    rows = x.reshape(-1, x.shape[-1])
+    out = np.empty_like(rows)
+    _kernels()[4](np.ascontiguousarray(sos, dtype=float), rows, out)
+    return out.reshape(x.shape)
 
 
 def shift(a, n):
