@@ -22,7 +22,7 @@ from .engine import amplifier_output, chain, lowpass, predict
 from .fit import Fitter, Structure
 from .stats import psd
 
-__all__ = ["CATALOGUE", "Mechanism", "describe_parameters", "plausible", "propose"]
+__all__ = ["CATALOGUE", "Mechanism", "describe_parameters", "plausible", "propose", "swapped_mode"]
 
 
 @dataclass(frozen=True)
@@ -176,24 +176,9 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
         places = ("output", "drive") if "us" in chans else ("output",)
         scored = sorted((fitter.quick(_with(p, res=(f, z), res_at=at)), f, z, at)
                         for f in fs for z in (0.005, 0.015, 0.06) for at in places)
-        if "mech_f" in fitter.ordinary:
-            # the recalibration may have taken the further mode for the device's own first mode
-            # (rig-119: a mode of 148 Hz, zeta 0.006, in series, taken as the first mode; the true
-            # first mode at 485 Hz left in the residual): the further mode where the first mode
-            # was, the first mode started above or below it, on each pick-off
-            f1, z1 = p.mode(fitter.dev)
-            lo, hi = fitter.bounds("mech_f")
-            for k in MODE_SWAP_STARTS:
-                for pick in (("contact", "load") if "us" in chans else ("stack",)):
-                    for at in places:
-                        q = _with(p, res=(f1, z1), res_at=at, pick=pick)
-                        q.set_mode(fitter.dev, f=float(np.clip(f1 * k, lo * 1.02, hi / 1.02)), zeta=0.05)
-                        scored.append((fitter.quick(q), q))
-            scored.sort(key=lambda s: s[0])
         best, best_c = None, math.inf
-        for item in scored[:3]:
-            start = item[1] if len(item) == 2 else _with(p, res=item[1:3], res_at=item[3])
-            q, c = fitter.fit_scalar(start, struct, "tau", quick=True,
+        for _, f, z, at in scored[:3]:
+            q, c = fitter.fit_scalar(_with(p, res=(f, z), res_at=at), struct, "tau", quick=True,
                                      bounds=(max(fitter.bounds("tau")[0], p.tau / 5), p.tau * 2), xatol=0.03)
             if c < best_c:
                 best, best_c = q, c
@@ -212,6 +197,29 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
             return None
         return finer_loop(fitter, p, struct)
     return None
+
+
+def swapped_mode(fitter: Fitter, p, struct: Structure, ctx):
+    """A further mode where the recalibrated first mode is, the first mode restarted above or below
+    it (``MODE_SWAP_STARTS``, each pick-off the channels allow, the mode at the drive or the
+    output): the recalibration may have taken a further mode for the device's own first mode
+    (rig-119: a mode of 148 Hz, zeta 0.006, in series, taken as the first mode, the true first mode
+    at 485 Hz left in the residual). The best start by the screening's cost, its lag re-searched;
+    ``None`` without an identified first mode or with a further mode in already."""
+    if "mech_f" not in fitter.ordinary or p.res is not None:
+        return None
+    f1, z1 = p.mode(fitter.dev)
+    lo, hi = fitter.bounds("mech_f")
+    starts = []
+    for k in MODE_SWAP_STARTS:
+        for pick in (("contact", "load") if "us" in ctx["channels"] else ("stack",)):
+            for at in (("output", "drive") if "us" in ctx["channels"] else ("output",)):
+                q = _with(p, res=(f1, z1), res_at=at, pick=pick)
+                q.set_mode(fitter.dev, f=float(np.clip(f1 * k, lo * 1.02, hi / 1.02)), zeta=0.05)
+                starts.append((fitter.quick(q), len(starts), q))
+    q, _ = fitter.fit_scalar(min(starts)[2], struct, "tau", quick=True,
+                             bounds=(max(fitter.bounds("tau")[0], p.tau / 5), p.tau * 2), xatol=0.03)
+    return q
 
 
 # creep is the slow motion after input changes: its slowest Kelvin element is at least this slow [s]

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 
-from .catalogue import CATALOGUE, plausible, propose, residual_peaks, shape_size
+from .catalogue import CATALOGUE, plausible, propose, residual_peaks, shape_size, swapped_mode
 from .decide import (CONFIDENT, at_bound, at_noise, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score)
 from .fit import Fitter, free_names, strip
@@ -170,7 +170,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         for i, name in enumerate(names):
             step(f"round {rnd + 1}: screening {name} ({i + 1}/{len(names)})")
             start = propose(name, fitter, current if name == "hysteresis_shape" else held, struct, cctx)
-            alt = None
+            alts = []          # further starts: (parameters, the ordinary items each does without)
             if name in FAST and recal is not None:
                 # a fast mechanism may be what the fast ordinary items stand in for: screen it also
                 # from the model without them (both are fitted; the better by BIC is kept)
@@ -181,7 +181,8 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                     for it in items:
                         base = without(base, it, recal)
                     a = propose(name, fitter, base, struct, cctx)
-                    alt = None if a is None else (a, items)
+                    if a is not None:
+                        alts.append((a, items))
             if (name == "thermal_drift" and start is not None and start.pick == "stack"
                     and "us" in cctx["channels"] and "mech_f" not in fitter.ordinary):
                 # without a visible first mode the pick-off is open: a sensor on the load spring
@@ -189,23 +190,31 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 # by BIC is kept)
                 a = start.copy()
                 a.pick = "load"
-                alt = (a, [])
-            if start is None and alt is None:
+                alts.append((a, []))
+            if name == "extra_resonance":
+                # or the first mode's place is the further mode's (both are fitted; the better by
+                # BIC is kept: a further mode elsewhere that fails may still show a better fit of
+                # the ordinary physics, rig-098)
+                a = swapped_mode(fitter, held, struct, cctx)
+                if a is not None:
+                    alts.append((a, []))
+            if start is None and not alts:
                 continue
             # the screening's cost with the weights re-solved for the proposed dynamics (held
             # weights fitted to other dynamics would make a good proposal look bad)
-            for x in (start, alt and alt[0]):
-                if x is not None and name != "hysteresis_shape":
+            starts = [x for x in [start] + [a for a, _ in alts] if x is not None]
+            for x in starts:
+                if name != "hysteresis_shape":
                     fitter.varpro(x, struct.with_effect(name, 0, len(x.creep)))
-            q = min(fitter.quick(x, drift=name == "thermal_drift") for x in (start, alt and alt[0]) if x is not None)
-            screened.append((q0 - q, name, start, alt))
+            q = min(fitter.quick(x, drift=name == "thermal_drift") for x in starts)
+            screened.append((q0 - q, name, start, alts))
         screened.sort(key=lambda s: -s[0])
         step(f"round {rnd + 1}: screening gains " + ", ".join(f"{n} {g / max(q0, 1e-300):.3g}" for g, n, _, _ in screened))
         tried = []
         # the loop shape's cells can bend to much that is not a loop shape: the physical candidates
         # are measured against the best of them, not against the shape
         top = max([g for g, n, _, _ in screened if n != "hysteresis_shape"] + [0.0])
-        for i, (gain, name, start, alt) in enumerate(screened[:4]):
+        for i, (gain, name, start, alts) in enumerate(screened[:4]):
             # the best screened candidate, the next ones when they come close to it, and further ones
             # (down the screening order) as long as nothing tried so far passed
             if gain <= 0 or (i >= 1 and gain < 0.4 * top and any(t["passed"] for t in tried)
@@ -215,9 +224,10 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 budget_note = "time budget reached: the weaker screened candidates were not fitted"
                 break
             step(f"round {rnd + 1}: fitting {name} (with the lag and every coupled parameter)")
-            s_new = struct.with_effect(name, shape_size(start, p_base.thresholds), len(start.creep))
+            first = start if start is not None else alts[0][0]
+            s_new = struct.with_effect(name, shape_size(first, p_base.thresholds), len(first.creep))
             fits = []
-            for st, dropped0 in ((start, []), alt or (None, None)):
+            for st, dropped0 in [(start, [])] + alts:
                 if st is None:
                     continue
                 free = _free(fitter, name, struct, s_new, dropped0)
