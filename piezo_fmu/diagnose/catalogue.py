@@ -200,12 +200,10 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
 
 
 def swapped_mode(fitter: Fitter, p, struct: Structure, ctx):
-    """A further mode where the recalibrated first mode is, the first mode restarted above or below
-    it (``MODE_SWAP_STARTS``, each pick-off the channels allow, the mode at the drive or the
-    output): the recalibration may have taken a further mode for the device's own first mode
-    (rig-119: a mode of 148 Hz, zeta 0.006, in series, taken as the first mode, the true first mode
-    at 485 Hz left in the residual). The best start by the screening's cost, its lag re-searched;
-    ``None`` without an identified first mode or with a further mode in already."""
+    """A further mode where the recalibrated first mode is (which may have been a further mode: rig-119,
+    148 Hz in series; its first mode, 485 Hz, left in the residual), the first mode restarted at
+    ``MODE_SWAP_STARTS`` times it, on each pick-off and place: the best start by the screening's
+    cost, its lag re-searched; ``None`` without an identified first mode or with a further mode."""
     if "mech_f" not in fitter.ordinary or p.res is not None:
         return None
     f1, z1 = p.mode(fitter.dev)
@@ -547,8 +545,8 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
             # it took the recalibrated first mode's place, the first mode moved elsewhere: another
             # account of the main resonance, taken only when it explains nearly all that the
             # one-mode model left (rig-119: a 148 Hz mode in series taken as the first mode, the
-            # true one found at 487 Hz, explains 100 %; on the clean rig-125 its own 1.1 kHz mode
-            # drawn in the other place, the first mode left at 4.4 kHz, explains 25-44 %)
+            # true one found at 487 Hz, explains 100 %, rig-089 86 %; a device's own mode drawn in
+            # the other place explains a part: 25-44 % on the clean rig-125, 67 % on rig-004)
             explained = max(v["explained"] for v in ch.values())
             if explained < MODE_SWAP_EXPLAINED:
                 return False, (f"it takes the place of the recalibrated first mode ({f0:.4g} Hz) and moves "
