@@ -178,8 +178,7 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
                         for f in fs for z in (0.005, 0.015, 0.06) for at in places)
         best, best_c = None, math.inf
         for _, f, z, at in scored[:3]:
-            q, c = fitter.fit_scalar(_with(p, res=(f, z), res_at=at), struct, "tau", quick=True,
-                                     bounds=(max(fitter.bounds("tau")[0], p.tau / 5), p.tau * 2), xatol=0.03)
+            q, c = _lag_searched(fitter, _with(p, res=(f, z), res_at=at), struct, p.tau)
             if c < best_c:
                 best, best_c = q, c
         return best
@@ -200,10 +199,9 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
 
 
 def swapped_mode(fitter: Fitter, p, struct: Structure, ctx):
-    """A further mode where the recalibrated first mode is (which may have been a further mode: rig-119,
-    148 Hz in series; its first mode, 485 Hz, left in the residual), the first mode restarted at
-    ``MODE_SWAP_STARTS`` times it, on each pick-off and place: the best start by the screening's
-    cost, its lag re-searched; ``None`` without an identified first mode or with a further mode."""
+    """A further mode where the recalibrated first mode is (rig-119: a 148 Hz mode in series taken for
+    it), the first mode restarted at ``MODE_SWAP_STARTS`` times it, each pick-off and place: the best
+    start by the screening's cost, lag re-searched; ``None`` without a first mode or with a further one."""
     if "mech_f" not in fitter.ordinary or p.res is not None:
         return None
     f1, z1 = p.mode(fitter.dev)
@@ -215,9 +213,13 @@ def swapped_mode(fitter: Fitter, p, struct: Structure, ctx):
                 q = _with(p, res=(f1, z1), res_at=at, pick=pick)
                 q.set_mode(fitter.dev, f=float(np.clip(f1 * k, lo * 1.02, hi / 1.02)), zeta=0.05)
                 starts.append((fitter.quick(q), len(starts), q))
-    q, _ = fitter.fit_scalar(min(starts)[2], struct, "tau", quick=True,
-                             bounds=(max(fitter.bounds("tau")[0], p.tau / 5), p.tau * 2), xatol=0.03)
-    return q
+    return _lag_searched(fitter, min(starts)[2], struct, p.tau)[0]
+
+
+def _lag_searched(fitter: Fitter, q, struct: Structure, tau):
+    """``(q, cost)``: a mode's start, the lag it had absorbed re-searched in ``tau`` / 5 .. 2 ``tau``."""
+    return fitter.fit_scalar(q, struct, "tau", quick=True,
+                             bounds=(max(fitter.bounds("tau")[0], tau / 5), tau * 2), xatol=0.03)
 
 
 # creep is the slow motion after input changes: its slowest Kelvin element is at least this slow [s]
@@ -230,9 +232,7 @@ CREEP_SLOWEST_S = 0.05
 # on rig-004, rig-040 and the clean rig-125, each reshaping the first mode's response, 0.001-0.010)
 MODE_OWN_BAND = 0.1
 MODE_BAND_WIDTH = 1.25   # that band: f_n / width .. f_n * width
-# where the first mode is restarted (multiples of the recalibrated one) when a further mode is
-# screened at the first mode's place
-MODE_SWAP_STARTS = (0.4, 0.63, 1.6, 2.5, 4.0, 6.3)
+MODE_SWAP_STARTS = (0.4, 0.63, 1.6, 2.5, 4.0, 6.3)   # first mode restarted at these x the old one
 MODE_SWAP_EXPLAINED = 0.8   # the share of the structured residual such a further mode must explain
 SHAPE_GRID = 6        # steps of the KP cells' Preisach grid over the recorded stack voltages (21 cells)
 SHAPE_GRID_FINE = 8   # the finer grid a named shape may ask for next (36 cells)
@@ -536,7 +536,7 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
                            f"{f / MODE_BAND_WIDTH:.4g}-{f * MODE_BAND_WIDTH:.4g} Hz: it does not ring at its "
                            "own frequency, it reshapes the response elsewhere (near the first mode, or "
                            "the lag)")
-        f1, z1 = p_after.mode(fitter.dev)
+        f1 = p_after.mode(fitter.dev)[0]
         if "mech_f" in fitter.ordinary and abs(math.log(f / f1)) < math.log(1.2):
             return False, (f"at the first mode ({f1:.4g} Hz, recalibrated): it re-fits that mode, it is "
                            "not a further one")
