@@ -20,7 +20,6 @@ import numpy as np
 from ..core.preisach import grid_cells
 from .engine import amplifier_output, chain, lowpass, predict
 from .fit import Fitter, Structure
-from .stats import psd
 
 __all__ = ["CATALOGUE", "Mechanism", "describe_parameters", "plausible", "propose", "swapped_mode"]
 
@@ -139,28 +138,10 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
     if name == "time_delay":
         if p.delay > 0:
             return None
-        # timing trades off against the loop's width: every point re-solves the weights
-        nd_max = max(1, min(64, int(round(0.02 / dt))))
-        # every delay up to 10 samples (a delay is resolved to whole samples), log-spaced above
-        nds = sorted({k for k in range(1, min(nd_max, 10) + 1)}
-                     | {int(round(v)) for v in np.exp(np.linspace(math.log(10), math.log(nd_max), 6))
-                        if nd_max > 10})
-        best, best_c = None, math.inf
-        for nd in nds:
-            # the total lag is roughly conserved: start the lag search from what is left of it
-            q, c = _lag_profile(fitter, p, struct, nd * dt, max(p.tau - nd * dt, p.tau / 20))
-            if c < best_c:
-                best, best_c = q, c
-            elif best is not None and c > 3 * best_c:
-                break                       # far past the best delay
-        nd0 = int(round(best.delay / dt))
-        for nd in (nd0 - 1, nd0 + 1):
-            if nd < 1 or nd in nds:
-                continue
-            q, c = _lag_profile(fitter, p, struct, nd * dt, best.tau)
-            if c < best_c:
-                best, best_c = q, c
-        return best
+        # a delay the recalibration took for lag may sit in the second stage too (rig-151: 1.5 + 2.2
+        # ms for a 3.4 ms delay): with two stages, both scaled together is searched as well
+        return min((_delay_search(fitter, p, struct, dt, both) for both in ((False, True) if p.tau2 > 0 else (False,))),
+                   key=lambda qc: qc[1])[0]
     if name == "extra_resonance":
         if p.res is not None:
             return None
@@ -281,15 +262,46 @@ def _with(p, **kw):
     return q
 
 
-def _lag_profile(fitter: Fitter, p, struct, delay, tau0):
+def _delay_search(fitter: Fitter, p, struct, dt, both):
+    """``(q, cost)``: the best whole-sample delay, each with its best lag (``both``: the two lag
+    stages scaled together, else the first alone); timing trades off against the loop's width."""
+    nd_max = max(1, min(64, int(round(0.02 / dt))))
+    # every delay up to 10 samples (a delay is resolved to whole samples), log-spaced above
+    nds = sorted({k for k in range(1, min(nd_max, 10) + 1)}
+                 | {int(round(v)) for v in np.exp(np.linspace(math.log(10), math.log(nd_max), 6))
+                    if nd_max > 10})
+    total = p.tau + (p.tau2 if both else 0.0)
+    best, best_c = None, math.inf
+    for nd in nds:
+        # the total lag is roughly conserved: start the lag search from what is left of it
+        k0 = max(1.0 - nd * dt / total, 1 / 20)
+        q, c = _lag_profile(fitter, p, struct, nd * dt, p.tau * k0, both)
+        if c < best_c:
+            best, best_c = q, c
+        elif best is not None and c > 3 * best_c:
+            break                       # far past the best delay
+    nd0 = int(round(best.delay / dt))
+    for nd in (nd0 - 1, nd0 + 1):
+        if nd < 1 or nd in nds:
+            continue
+        q, c = _lag_profile(fitter, p, struct, nd * dt, best.tau, both)
+        if c < best_c:
+            best, best_c = q, c
+    return best, best_c
+
+
+def _lag_profile(fitter: Fitter, p, struct, delay, tau0, both=False):
     """Best amplifier lag for a given delay (the screening: weights held, each channel's gain and
-    offset re-solved): three lags and a parabola in log tau. Returns the parameters and the cost."""
+    offset re-solved): three lags and a parabola in log tau (``both``: the second stage scaled
+    with the first). Returns the parameters and the cost."""
     lo = fitter.bounds("tau")[0]
 
     def at(x):
         q = p.copy()
         q.delay = delay
         q.tau = math.exp(x)
+        if both:
+            q.tau2 = p.tau2 * q.tau / p.tau
         return q, fitter.quick(q)
 
     xs = sorted({math.log(max(tau0 * f, lo)) for f in (0.5, 1.0, 2.0)})
@@ -446,39 +458,6 @@ def _drift_in_sensor(fitter: Fitter, p):
     if dd <= 0:
         return None
     return float((e - np.mean(e)) @ d / dd)
-
-
-def residual_peaks(fitter: Fitter, p, n=3):
-    """Peaks of the residual spectrum of every recorded channel (see :func:`spectral_peaks`)."""
-    out = []
-    for r in fitter.recs:
-        pr = predict(r, fitter.dev, p, direct=True)
-        for c in r.channels():
-            out += spectral_peaks(getattr(r, c) - pr[c], 1 / r.dt, n)
-    return sorted({round(f, 4) for f in out})
-
-
-def spectral_peaks(e, fs, n=3, fmin=5.0):
-    """Frequencies [Hz] of the largest local maxima of the residual spectrum above ``fmin``.
-
-    Fine resolution (segments of up to 1/0.2 Hz, i.e. 5 s, or the whole record) and a parabola
-    through each peak's log-power: a lightly damped mode's peak is narrower than a coarse bin."""
-    nper = int(min(e.size, 2 ** int(math.ceil(math.log2(max(fs / 0.2, 64))))))
-    f, pw = psd(e, fs, nper)
-    if f.size < 4:
-        return []
-    lp = np.log(np.maximum(pw, 1e-300))
-    loc = np.nonzero((lp[1:-1] > lp[:-2]) & (lp[1:-1] > lp[2:]))[0] + 1
-    loc = loc[f[loc] > fmin]
-    loc = loc[np.argsort(-pw[loc])][:n]
-    df = f[1] - f[0]
-    out = []
-    for k in loc:
-        a, b, c = lp[k - 1], lp[k], lp[k + 1]
-        den = a - 2 * b + c
-        off = 0.5 * (a - c) / den if den < 0 else 0.0
-        out.append(float(f[k] + np.clip(off, -0.5, 0.5) * df))
-    return out
 
 
 def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):

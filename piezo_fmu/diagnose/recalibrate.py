@@ -33,14 +33,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .catalogue import spectral_peaks
 from .engine import predict
 from .fit import Fitter, Structure, free_names, get_value
-from .residuals import ACCEPT, full_residuals, residual_sets
+from .residuals import ACCEPT, full_residuals, residual_sets, spectral_peaks
 from .stats import compare, noise_level, tau_int
 from .varpro import solve_linear
 
-__all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "mode_at", "recalibrate"]
+__all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "mode_at", "ordinary_names", "recalibrate", "uncertainty"]
 
 PICKOFFS = ("stack", "contact", "load")
 MODE_RANGE = (100.0, 20000.0)        # [Hz] the first mode's search range
@@ -92,9 +91,15 @@ def recalibrate(fitter: Fitter, p_start, struct: Structure, step) -> Recalibrati
     step("recalibrating the voltage scale of the hysteresis thresholds")
     _threshold_scale(fitter, rc, struct, sat)
     revisit(fitter, rc, struct, step)
-    scale = ["u_norm"] if rc.report["threshold_scale"].get("identified") else []
-    rc.report["uncertainty"] = uncertainty(fitter, rc.params, struct, fitter.ordinary + sat + scale)
+    rc.report["uncertainty"] = uncertainty(fitter, rc.params, struct, ordinary_names(fitter, rc, struct))
     return rc
+
+
+def ordinary_names(fitter: Fitter, rc: Recalibration, struct: Structure):
+    """The recalibrated nonlinear parameters (those :func:`uncertainty` reports)."""
+    sat = ["y_sat"] if struct.saturation else []
+    scale = ["u_norm"] if rc.report["threshold_scale"].get("identified") else []
+    return fitter.ordinary + sat + scale
 
 
 def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):

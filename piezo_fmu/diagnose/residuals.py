@@ -1,17 +1,20 @@
-"""The residuals of a parameter set (training and held-out rows per channel) and the acceptance
-thresholds every decision of the diagnosis uses (see docs/diagnose.md, "How a finding is decided").
+"""The residuals of a parameter set (training and held-out rows per channel, the peaks of their
+spectra) and the acceptance thresholds every decision of the diagnosis uses (see docs/diagnose.md, "How a finding is decided").
 
 Kept apart from :mod:`.select` and :mod:`.recalibrate`, which both need them, so that neither
 imports the other at module level.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .engine import predict
 from .fit import Fitter
+from .stats import psd
 
-__all__ = ["ACCEPT", "full_residuals", "residual_sets"]
+__all__ = ["ACCEPT", "full_residuals", "residual_peaks", "residual_sets", "spectral_peaks"]
 
 ACCEPT = {
     "p_lr": 1e-3,            # likelihood-ratio test on training rows (effective sample size)
@@ -52,4 +55,37 @@ def full_residuals(fitter, p):
     for r, rp in zip(fitter.recs, rps):
         pr = predict(r, fitter.dev, p, rp)
         out.append({ch: getattr(r, ch) - pr[ch] for ch in r.channels()})
+    return out
+
+
+def residual_peaks(fitter: Fitter, p, n=3):
+    """Peaks of the residual spectrum of every recorded channel (see :func:`spectral_peaks`)."""
+    out = []
+    for r in fitter.recs:
+        pr = predict(r, fitter.dev, p, direct=True)
+        for c in r.channels():
+            out += spectral_peaks(getattr(r, c) - pr[c], 1 / r.dt, n)
+    return sorted({round(f, 4) for f in out})
+
+
+def spectral_peaks(e, fs, n=3, fmin=5.0):
+    """Frequencies [Hz] of the largest local maxima of the residual spectrum above ``fmin``.
+
+    Fine resolution (segments of up to 1/0.2 Hz, i.e. 5 s, or the whole record) and a parabola
+    through each peak's log-power: a lightly damped mode's peak is narrower than a coarse bin."""
+    nper = int(min(e.size, 2 ** int(math.ceil(math.log2(max(fs / 0.2, 64))))))
+    f, pw = psd(e, fs, nper)
+    if f.size < 4:
+        return []
+    lp = np.log(np.maximum(pw, 1e-300))
+    loc = np.nonzero((lp[1:-1] > lp[:-2]) & (lp[1:-1] > lp[2:]))[0] + 1
+    loc = loc[f[loc] > fmin]
+    loc = loc[np.argsort(-pw[loc])][:n]
+    df = f[1] - f[0]
+    out = []
+    for k in loc:
+        a, b, c = lp[k - 1], lp[k], lp[k + 1]
+        den = a - 2 * b + c
+        off = 0.5 * (a - c) / den if den < 0 else 0.0
+        out.append(float(f[k] + np.clip(off, -0.5, 0.5) * df))
     return out

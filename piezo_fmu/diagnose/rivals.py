@@ -7,7 +7,8 @@
 * a drift in both channels must beat one more creep element (:func:`creep_before_drift`, and
   :func:`drift_or_creep` after the backward check);
 * a further mode where the device's first mode would do is that first mode
-  (:func:`resonance_or_mode`).
+  (:func:`resonance_or_mode`);
+* a delay where the amplifier's second lag stage would do is that stage (:func:`delay_or_lag`).
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from .residuals import ACCEPT, residual_sets
 from .stats import compare
 
 __all__ = ["CREEP_BEFORE_DRIFT", "MODE_EVIDENCE", "ORDINARY_ADOPTIONS", "SHAPE_LAST", "creep_before_drift",
-           "drift_both", "drift_or_creep", "ordinary_found", "physics_before_shape", "resonance_or_mode"]
+           "delay_or_lag", "drift_both", "drift_or_creep", "ordinary_found", "physics_before_shape", "resonance_or_mode"]
 
 SHAPE_LAST = 0.8           # a physical mechanism explaining this share of what a finer loop does goes first
 
@@ -34,6 +35,11 @@ CREEP_BEFORE_DRIFT = 0.03  # a drift in both channels must explain this much mor
 # the same dynamics, BIC 0.1); less than the naming threshold: a further mode beside a first mode
 # above the Nyquist frequency is told apart only by how it reaches the two channels (rig-025: 5.1)
 MODE_EVIDENCE = 2.0
+
+# a delay found with a one-stage amplifier must beat a second lag stage in its place (the same number
+# of parameters) by the same evidence: over a drive slow against both (rig-010: chirps to 100 Hz, a
+# 0.20 ms stage named as a 3-sample delay at 15.1 kHz) the two differ by a fraction of a percent
+LAG_EVIDENCE = MODE_EVIDENCE
 
 ORDINARY_ADOPTIONS = 2     # times a search may hand a better fit of the ordinary physics to the recalibration
 
@@ -186,4 +192,40 @@ def resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd):
     for item in best["dropped"]:
         if item != "mode":
             drop(fitter, recal, item, why="the first mode explains it")
+    return recal.params
+
+
+def delay_or_lag(fitter, best, struct, p_base, recal, step, rnd):
+    """A delay found with a first-order amplifier may be the amplifier's second lag stage, ordinary
+    physics. The delay's fit is re-fitted with a second stage of the delay's length in its place
+    (the lags and the ordinary items the delay left in free); when that explains the data within
+    :data:`LAG_EVIDENCE` of the delay (BIC, effective sample size), the second stage is taken into
+    the recalibration and nothing is named (once per diagnosis: the delay searched again beside the
+    second stage then stands on its own). Returns the new parameters or ``None``."""
+    from .recalibrate import ITEM_PARAMS, drop
+
+    fp = best["fit"].params
+    if best["name"] != "time_delay" or recal is None or fp.tau2 > 0.0 \
+            or "from_delay" in recal.report.get("amplifier_order", {}):
+        return None
+    q = strip(fp, struct, p_base.thresholds)
+    q.tau2 = fp.delay
+    gone = {n for it in best["dropped"] for n in ITEM_PARAMS[it]}
+    free = [n for n in fitter.ordinary if n not in gone and n != "tau2"] + ["tau2"]
+    fr = fitter.fit(q, struct, free=free, max_nfev=10, held=True)
+    worth = fitter.n_eff * math.log(max(fr.cost, 1e-300) / max(best["fit"].cost, 1e-300))
+    lo, hi = fitter.bounds("tau2")
+    if worth >= LAG_EVIDENCE or not lo * 1.05 < fr.params.tau2 < hi / 1.05:
+        step(f"round {rnd + 1}: the delay of {1e3 * fp.delay:.3g} ms beats a second amplifier stage in its "
+             f"place (BIC {worth:.1f})")
+        return None
+    step(f"round {rnd + 1}: the delay of {1e3 * fp.delay:.3g} ms is the amplifier's second lag stage "
+         f"({1e3 * fr.params.tau:.3g} + {1e3 * fr.params.tau2:.3g} ms; the delay would gain BIC {worth:.1f}): "
+         "recalibrated, not named")
+    recal.params = fr.params
+    fitter.ordinary = [n for n in fitter.ordinary if n != "tau2"] + ["tau2"]
+    recal.report["amplifier_order"] = {"value": 2, "from_delay": round(worth, 1),
+                                       "why": f"found in round {rnd + 1} where a delay was searched"}
+    for item in best["dropped"]:
+        drop(fitter, recal, item, why="the second lag stage explains it")
     return recal.params

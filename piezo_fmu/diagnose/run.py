@@ -25,11 +25,11 @@ from ..errors import UserError
 from ..model import Model, load_model
 from . import locate
 from .blas import single_thread
-from .catalogue import residual_peaks
 from .engine import Device, Params, device_from_model, params_from_model, predict
 from .fit import Fitter, Structure, strip
-from .recalibrate import recalibrate, revisit
+from .recalibrate import ordinary_names, recalibrate, revisit, uncertainty
 from .recordings import load_recordings, make_recordings
+from .residuals import residual_peaks
 from .results import assemble, file_predictions, localise, rmse_as_given, to_model
 from .select import ACCEPT, full_residuals, noise_levels, residual_sets, select
 from .varpro import solve_linear
@@ -211,6 +211,11 @@ def _analyse(raw, model, say, max_rounds, time_budget_s):
         step("re-fitting the recalibrated nominal model with the ordinary physics found since")
         p_base = fitter.fit(strip(p_final, struct_base, p_base.thresholds), struct_base, max_nfev=10).params
         struct_nom = struct_base
+    names = ordinary_names(fitter, recal, struct_nom)
+    if set(names) != set(recal.report.get("uncertainty", {})):
+        # ordinary items found during the selection (a first mode, a second lag stage): their
+        # uncertainty at the recalibrated nominal model, as for those found before it
+        recal.report["uncertainty"] = uncertainty(fitter, p_base, struct_nom, names)
     loc_base = localise(recs, full_residuals(fitter, p_base), ctxs, noise)
     sets_base, _ = residual_sets(fitter, p_base)
     base_struct_rms = {c: math.sqrt(max(float(np.mean(sets_base[c]["heldout"] ** 2)) - noise[c] ** 2, 0.0))
