@@ -555,6 +555,30 @@ def test_fmus_rebuilt_from_the_diagnosed_model_reproduce_the_recording(creep_run
     shutil.rmtree(fmus, ignore_errors=True)
 
 
+@pytest.mark.parametrize("seed, kinds", [(1001, None), (31, ["steps", "sines"])])
+def test_the_channels_calibration_is_reported_with_an_uncertainty_that_covers_the_truth(seed, kinds):
+    # a clean recording of the project's own model (exact structure, known offsets and quartz
+    # sensitivity): the recalibrated offsets [um, V] and sensitivity [V/N] lie within three of
+    # their standard uncertainties of what the recording was made with (measured: 0.02-1.9 of
+    # one). The uncertainty is the noise's; it would not cover a wrong model
+    from piezo_fmu.diagnose.run import analyse
+
+    case = make_case(seed, [], "low", kinds, fs=2000.0 if kinds else 5000.0)
+    plant = case.truth["plant"]
+    s = plant["sensor"]
+    c_quartz = 8.8541878128e-12 * s["eps_r"] * s["area"] / s["thickness"]
+    truth = {"x_offset_um": plant["drift"]["offset"], "sensor_offset_V": s["offset"],
+             "sensor_sensitivity_V_per_N": s["d11"] / (c_quartz + s["C_load"])}
+    rc = analyse([{"name": "clean", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]).result[
+        "baseline"]["recalibrated"]
+    for key, true in truth.items():
+        v = rc[key]
+        sigma = v["uncertainty"] if "uncertainty" in v else v["relative_uncertainty"] * abs(v["value"])
+        assert sigma > 0, (key, v)
+        assert abs(v["value"] - true) < 3 * sigma, (key, v, true, (v["value"] - true) / sigma)
+    assert rc["pi_scale_um"]["relative_uncertainty"] > 0
+
+
 def test_cancelling_weights_still_make_a_valid_model_file():
     # a poorly conditioned fit (rig-083: 1846 samples) gave +761 and -761 um on the first two
     # operators; rounded to 8 digits their partial sum was 0 and writing model.toml crashed

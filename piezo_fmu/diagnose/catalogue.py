@@ -12,6 +12,7 @@ parameters of the model file. For each one this module knows
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -96,13 +97,15 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
     dt, T = fitter.dt, fitter.duration
     chans = ctx["channels"]
     if name == "creep":
-        if struct.creep_order >= 2:
+        # two elements at most, three where a rival asks for one more (``ctx["creep_max"]``)
+        if struct.creep_order >= ctx.get("creep_max", 2):
             return None
         # one element more than now (or, from none, one or two at once: creep that spans decades,
         # logarithmic in time, needs both); every element re-screened (taus on a grid, gains solved)
         taus = _log_grid(max(0.005, 10 * dt), 2.0 * T, 13)
-        pairs = [(a, b) for i, a in enumerate(taus) for b in taus[i + 1:] if b / a >= 2.5]
-        sets = ([(t,) for t in taus] + pairs) if struct.creep_order == 0 else pairs
+        more = [c for c in itertools.combinations(taus, max(struct.creep_order + 1, 2))
+                if all(b / a >= 2.5 for a, b in zip(c, c[1:]))]
+        sets = ([(t,) for t in taus] + more) if struct.creep_order == 0 else more
         best = {}
         for cost, gains, tset in _quick_creep_sets(fitter, p, sets):
             if all(g > 0 for g in gains) and cost < best.get(len(tset), (math.inf,))[0]:

@@ -34,12 +34,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .engine import predict
-from .fit import Fitter, Structure, free_names, get_value
+from .fit import Fitter, Structure, free_names, get_value, set_value
 from .residuals import ACCEPT, full_residuals, residual_sets, spectral_peaks
 from .stats import compare, noise_level, tau_int
 from .varpro import solve_linear
 
-__all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "mode_at", "ordinary_names", "recalibrate", "uncertainty"]
+__all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "channel_uncertainty", "mode_at", "ordinary_names", "recalibrate",
+           "uncertainty"]
 
 PICKOFFS = ("stack", "contact", "load")
 MODE_RANGE = (100.0, 20000.0)        # [Hz] the first mode's search range
@@ -488,7 +489,6 @@ def uncertainty(fitter: Fitter, p, struct, names):
         return {}
     r0 = fitter.varpro(p.copy(), struct)
     cols = []
-    from .fit import set_value
     for n in names:
         q = p.copy()
         v = get_value(q, n, fitter.dev)
@@ -505,6 +505,65 @@ def uncertainty(fitter: Fitter, p, struct, names):
     except np.linalg.LinAlgError:
         return {n: None for n in names}
     return {n: float(f"{math.sqrt(max(cov[i, i], 0.0)):.3g}") for i, n in enumerate(names)}
+
+
+def channel_uncertainty(fitter: Fitter, p, names):
+    """Standard uncertainty of the linear calibration of ``p``: the loop's scale and the sensor's
+    sensitivity (relative) and the channels' offsets (absolute: um and V). The Gauss-Newton
+    covariance of the residual in these and the nonlinear parameters ``names`` (so that their
+    correlations count; the weights' shape is held, their common scale free), its variance
+    inflated by the residual's integrated autocorrelation time. ``None`` for what the data cannot
+    separate (the loop's scale from the sensitivity with the sensor voltage alone)."""
+    from .varpro import residuals
+
+    def res(q):
+        return residuals(fitter.recs, fitter.dev, q, fitter.lam, fitter.replays(q))
+
+    r0 = res(p)
+    chans = {c for r in fitter.recs for c in r.channels()}
+    cols, keys = [], []
+
+    def column(key, q, step):
+        cols.append((res(q) - r0) / step)
+        keys.append(key)
+
+    h = 1e-3
+    for n in names:                     # in log coordinates, the linear parameters held
+        q = p.copy()
+        v = get_value(q, n, fitter.dev)
+        hn = h if v * math.exp(h) <= fitter.bounds(n, p)[1] else -h
+        set_value(q, n, v * math.exp(hn), fitter.dev)
+        column(n, q, hn)
+    q = p.copy()
+    q.weights = np.asarray(p.weights, float) * (1.0 + h)
+    if q.cell_w is not None:
+        q.cell_w = np.asarray(p.cell_w, float) * (1.0 + h)
+    column("pi_scale", q, h)
+    if "us" in chans:
+        q = p.copy()
+        q.S = p.S * (1.0 + h)
+        column("S", q, h)
+        q = p.copy()
+        q.off_s = p.off_s + 1.0
+        column("off_s", q, 1.0)
+    if "x" in chans:
+        q = p.copy()
+        q.off_x = p.off_x + 1.0
+        column("off_x", q, 1.0)
+    J = np.column_stack(cols)
+    s2 = float(r0 @ r0) / max(r0.size - len(keys), 1) * tau_int(r0)
+    gram = J.T @ J
+    if np.linalg.cond(gram) > 1e12:
+        # the inseparable pair gets no figure; the rest from the covariance without it
+        drop = {"pi_scale", "S"} if {"pi_scale", "S"} <= set(keys) and "x" not in chans else set()
+        idx = [i for i, k in enumerate(keys) if k not in drop]
+        keys, gram = [keys[i] for i in idx], gram[np.ix_(idx, idx)]
+    try:
+        cov = np.linalg.inv(gram) * s2
+    except np.linalg.LinAlgError:
+        return {}
+    return {k: float(f"{math.sqrt(max(cov[i, i], 0.0)):.3g}") for i, k in enumerate(keys)
+            if k in ("pi_scale", "S", "off_s", "off_x")}
 
 
 def relinearise(fitter, p, struct):

@@ -441,14 +441,16 @@ code{{background:#f6f6f6}}</style></head><body>
         rows = []
         for k, v in rc.items():
             if isinstance(v, dict) and "value" in v:
-                unc = v.get("relative_uncertainty")
+                unc, absolute = v.get("relative_uncertainty"), v.get("uncertainty")
                 extra = " (not identified" + (f": {v['why']}" if v.get("why") else "") + ")" \
                     if v.get("identified") is False else ""
+                # an offset's uncertainty is in its own unit (the key's suffix: x_offset_um)
                 rows.append([e(k), e(_param_text({k: v["value"]})) + e(extra),
-                             f"{100 * unc:.2g} %" if unc is not None else "-"])
+                             f"{100 * unc:.2g} %" if unc is not None else
+                             e(f"{_fmt(absolute)} {k.rsplit('_', 1)[-1]}") if absolute is not None else "-"])
             else:
                 rows.append([e(k), e(_param_text({k: v})), "-"])
-        parts.append("<h2>Recalibrated ordinary physics</h2>" + _table(rows, ["quantity", "value", "relative uncertainty"]))
+        parts.append("<h2>Recalibrated ordinary physics</h2>" + _table(rows, ["quantity", "value", "standard uncertainty"]))
     rows = []
     for c, t in res["final"]["tests"].items():
         xc = t["input_xcorr"]

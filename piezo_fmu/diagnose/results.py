@@ -419,9 +419,11 @@ ORDINARY = 2.0     # a structured residual up to this many noise rms, with nothi
 
 
 def recal_summary(p, dev, dt, recal):
-    """The recalibrated ordinary physics, each value with its unit and (for the nonlinear ones
-    fitted) its relative standard uncertainty."""
+    """The recalibrated ordinary physics, each value with its unit and its standard uncertainty:
+    relative for the nonlinear ones fitted, the loop's scale and the sensor's sensitivity; in the
+    value's unit for the offsets."""
     unc = recal.report.get("uncertainty", {}) if recal else {}
+    lin = recal.report.get("uncertainty_linear", {}) if recal else {}
     rep = recal.report if recal else {}
     f1, z1 = p.mode(dev)
 
@@ -451,8 +453,11 @@ def recal_summary(p, dev, dt, recal):
         "threshold_scale_V": {"value": val(p.u_norm), "relative_uncertainty": unc.get("u_norm"),
                               "identified": rep.get("threshold_scale", {}).get("identified", False),
                               "meaning": "u_norm: the voltage the normalised PI thresholds are in units of"},
-        "pi_scale_um": val(np.sum(p.weights), 6), "x_offset_um": val(p.off_x, 6),
-        "sensor_sensitivity_V_per_N": val(p.S, 6), "sensor_offset_V": val(p.off_s, 6),
-        "saturation_um": val(p.y_sat, 6) if math.isfinite(p.y_sat) else None,
+        "pi_scale_um": {"value": val(np.sum(p.weights), 6), "relative_uncertainty": lin.get("pi_scale")},
+        "x_offset_um": {"value": val(p.off_x, 6), "uncertainty": lin.get("off_x")},
+        "sensor_sensitivity_V_per_N": {"value": val(p.S, 6), "relative_uncertainty": lin.get("S")},
+        "sensor_offset_V": {"value": val(p.off_s, 6), "uncertainty": lin.get("off_s")},
+        "saturation_um": ({"value": val(p.y_sat, 6), "relative_uncertainty": unc.get("y_sat")}
+                          if math.isfinite(p.y_sat) else None),
     }
     return out

@@ -41,6 +41,11 @@ MODE_EVIDENCE = 2.0
 # 0.20 ms stage named as a 3-sample delay at 15.1 kHz) the two differ by a fraction of a percent
 LAG_EVIDENCE = MODE_EVIDENCE
 
+# the drift may be taken by a third creep element (the search's limit is two): the rig's logarithmic
+# creep over a 7-16 s record needs an element of a few ms, one of a few hundred, and one slower, which
+# a drift in both channels had stood in for (rig-077, 115)
+DRIFT_AS_CREEP = 3
+
 ORDINARY_ADOPTIONS = 2     # times a search may hand a better fit of the ordinary physics to the recalibration
 
 
@@ -118,13 +123,13 @@ def drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise, c
     parameters, or fewer), the drift is not needed: creep takes its place. Returns ``(p, struct,
     findings)``."""
     names = {f["name"] for f in findings}
-    if not {"creep", "thermal_drift"} <= names or current.pick != "load" or struct.creep_order >= 2:
+    if not {"creep", "thermal_drift"} <= names or current.pick != "load" or struct.creep_order >= DRIFT_AS_CREEP:
         return current, struct, findings
     step("checking whether a further creep element explains the drift in both channels")
     s_wo = struct.without("thermal_drift")
     base = strip(current, s_wo, p_base.thresholds)
     base.pick = p_base.pick
-    start = propose("creep", fitter, base, s_wo, cctx)
+    start = propose("creep", fitter, base, s_wo, {**cctx, "creep_max": DRIFT_AS_CREEP})
     if start is None:
         return current, struct, findings
     s_sw = s_wo.with_effect("creep", 0, len(start.creep))

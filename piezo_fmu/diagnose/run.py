@@ -27,7 +27,7 @@ from . import locate
 from .blas import single_thread
 from .engine import Device, Params, device_from_model, params_from_model, predict
 from .fit import Fitter, Structure, strip
-from .recalibrate import ordinary_names, recalibrate, revisit, uncertainty
+from .recalibrate import channel_uncertainty, ordinary_names, recalibrate, revisit, uncertainty
 from .recordings import load_recordings, make_recordings
 from .residuals import residual_peaks
 from .results import assemble, file_predictions, localise, rmse_as_given, to_model
@@ -216,6 +216,7 @@ def _analyse(raw, model, say, max_rounds, time_budget_s):
         # ordinary items found during the selection (a first mode, a second lag stage): their
         # uncertainty at the recalibrated nominal model, as for those found before it
         recal.report["uncertainty"] = uncertainty(fitter, p_base, struct_nom, names)
+    recal.report["uncertainty_linear"] = channel_uncertainty(fitter, p_base, names)
     loc_base = localise(recs, full_residuals(fitter, p_base), ctxs, noise)
     sets_base, _ = residual_sets(fitter, p_base)
     base_struct_rms = {c: math.sqrt(max(float(np.mean(sets_base[c]["heldout"] ** 2)) - noise[c] ** 2, 0.0))
