@@ -143,8 +143,8 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
             return None
         # a delay the recalibration took for lag may sit in the second stage too (rig-151: 1.5 + 2.2
         # ms for a 3.4 ms delay): with two stages, both scaled together is searched as well
-        return min((_delay_search(fitter, p, struct, dt, both) for both in ((False, True) if p.tau2 > 0 else (False,))),
-                   key=lambda qc: qc[1])[0]
+        searches = [_delay_search(fitter, p, struct, dt, both) for both in ((False, True) if p.tau2 > 0 else (False,))]
+        return min(searches, key=lambda qc: qc[1])[0]
     if name == "extra_resonance":
         if p.res is not None:
             return None

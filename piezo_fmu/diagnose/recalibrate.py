@@ -490,13 +490,7 @@ def uncertainty(fitter: Fitter, p, struct, names):
     r0 = fitter.varpro(p.copy(), struct)
     cols = []
     for n in names:
-        q = p.copy()
-        v = get_value(q, n, fitter.dev)
-        h = 1e-3
-        hi = fitter.bounds(n, p)[1]
-        if v * math.exp(h) > hi:
-            h = -h
-        set_value(q, n, v * math.exp(h), fitter.dev)
+        q, h = _nudged(fitter, p, n)
         cols.append((fitter.varpro(q, struct) - r0) / h)
     J = np.column_stack(cols)
     s2 = float(r0 @ r0) / max(r0.size - len(names), 1) * tau_int(r0)
@@ -505,6 +499,16 @@ def uncertainty(fitter: Fitter, p, struct, names):
     except np.linalg.LinAlgError:
         return {n: None for n in names}
     return {n: float(f"{math.sqrt(max(cov[i, i], 0.0)):.3g}") for i, n in enumerate(names)}
+
+
+def _nudged(fitter: Fitter, p, name, h=1e-3):
+    """``(q, step)``: ``p`` with the nonlinear parameter ``name`` moved by ``step`` in log
+    coordinates (``h``, or ``-h`` where that would pass its upper bound)."""
+    q = p.copy()
+    v = get_value(q, name, fitter.dev)
+    step = h if v * math.exp(h) <= fitter.bounds(name, p)[1] else -h
+    set_value(q, name, v * math.exp(step), fitter.dev)
+    return q, step
 
 
 def channel_uncertainty(fitter: Fitter, p, names):
@@ -527,13 +531,9 @@ def channel_uncertainty(fitter: Fitter, p, names):
         cols.append((res(q) - r0) / step)
         keys.append(key)
 
+    for n in names:                     # the linear parameters held
+        column(n, *_nudged(fitter, p, n))
     h = 1e-3
-    for n in names:                     # in log coordinates, the linear parameters held
-        q = p.copy()
-        v = get_value(q, n, fitter.dev)
-        hn = h if v * math.exp(h) <= fitter.bounds(n, p)[1] else -h
-        set_value(q, n, v * math.exp(hn), fitter.dev)
-        column(n, q, hn)
     q = p.copy()
     q.weights = np.asarray(p.weights, float) * (1.0 + h)
     if q.cell_w is not None:
@@ -553,15 +553,13 @@ def channel_uncertainty(fitter: Fitter, p, names):
     J = np.column_stack(cols)
     s2 = float(r0 @ r0) / max(r0.size - len(keys), 1) * tau_int(r0)
     gram = J.T @ J
-    if np.linalg.cond(gram) > 1e12:
+    if np.linalg.cond(gram) > 1e12 and "x" not in chans:
         # the inseparable pair gets no figure; the rest from the covariance without it
-        drop = {"pi_scale", "S"} if {"pi_scale", "S"} <= set(keys) and "x" not in chans else set()
-        idx = [i for i, k in enumerate(keys) if k not in drop]
+        idx = [i for i, k in enumerate(keys) if k not in ("pi_scale", "S")]
         keys, gram = [keys[i] for i in idx], gram[np.ix_(idx, idx)]
-    try:
-        cov = np.linalg.inv(gram) * s2
-    except np.linalg.LinAlgError:
-        return {}
+    if np.linalg.cond(gram) > 1e12:
+        return {}                       # no figures rather than wrong ones
+    cov = np.linalg.inv(gram) * s2
     return {k: float(f"{math.sqrt(max(cov[i, i], 0.0)):.3g}") for i, k in enumerate(keys)
             if k in ("pi_scale", "S", "off_s", "off_x")}
 

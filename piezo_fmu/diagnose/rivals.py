@@ -42,7 +42,7 @@ MODE_EVIDENCE = 2.0
 LAG_EVIDENCE = MODE_EVIDENCE
 
 # the drift may be taken by a third creep element (the search's limit is two): the rig's logarithmic
-# creep over a 7-16 s record needs an element of a few ms, one of a few hundred, and one slower, which
+# creep over a 16-18 s record needs an element of a few ms, one of a few hundred, and one slower, which
 # a drift in both channels had stood in for (rig-077, 115)
 DRIFT_AS_CREEP = 3
 
