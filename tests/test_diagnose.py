@@ -848,6 +848,79 @@ def test_a_drift_that_a_third_creep_element_explains_is_not_named():
     assert len(creep["parameters"]["time_constants_s"]) == DRIFT_AS_CREEP
 
 
+def test_a_trend_the_holds_do_not_show_is_not_a_drift():
+    # rig-050: a clean Bouc-Wen device at 1150 Hz, at rest for 0.9 s, then a multisine with a
+    # 1.4 Hz part for 1.3 s. The loop's misfit over the slow part looks like a trend in both
+    # channels, and a drift (rate and curvature) had stayed a candidate (0.26), so the verdict was
+    # not "nothing is missing". A drift goes on while the command holds still; in the rest the data
+    # take ~0.1 of its correction
+    from piezo_fmu.diagnose.catalogue import DRIFT_HOLD_TAKEN
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-050")
+    assert rec.truth["mechanisms"] == [] and rec.truth["control"] is None
+    res = analyse(raw).result
+    assert res["final"]["effects"] == [] and res["candidates"] == [], res["candidates"]
+    assert res["final"]["nothing_missing"], res["final"]["verdict"]
+    why = [r["why"] for r in res["rejected"] if r["effect"] == "thermal_drift"]
+    assert why and "holds still" in why[0], why
+    assert float(why[0].split("the data take ")[1].split(" of")[0]) < DRIFT_HOLD_TAKEN
+
+
+def test_the_holds_take_all_of_a_true_drift(monkeypatch):
+    # the measure behind the rule above, on a drift the record really has (rig-012: a ramp-form
+    # drift, holds over 98 % of the record) and on a command without holds
+    from piezo_fmu.diagnose.fit import Fitter
+    from piezo_fmu.diagnose.residuals import hold_runs, taken_in_holds
+
+    u = np.concatenate([np.zeros(300), np.full(50, 2.0), np.sin(np.arange(400) / 20.0), np.full(400, 1.0)])
+    dt = 1e-3
+    # holds of at least 0.2 s without their first 20 ms: the rest and the last level (not the
+    # 50 ms one, not the sine)
+    assert hold_runs(u, dt) == [(20, 300), (770, 1150)]
+    assert hold_runs(np.sin(np.arange(1000) / 7.0), dt) == []
+
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-012")
+    assert rec.truth["mechanisms"] == ["thermal_drift"]
+    seen = []
+    orig = taken_in_holds
+
+    def spy(fitter: Fitter, p0, p1, ch):
+        out = orig(fitter, p0, p1, ch)
+        seen.append(out)
+        return out
+
+    import piezo_fmu.diagnose.catalogue as cat
+    monkeypatch.setattr(cat, "taken_in_holds", spy)
+    res = analyse(raw).result
+    assert res["final"]["effects"] == ["thermal_drift"], res["rejected"]
+    assert seen and all(s is not None for s in seen)
+    beta, strength = seen[-1]
+    assert strength > 10 and beta == pytest.approx(1.0, abs=0.2)
+
+
+def test_a_whole_sample_delay_of_one_channel_is_also_its_sampling_lag():
+    # rig-122: one channel (the displacement) of a KP device at 991 Hz whose command reaches the
+    # amplifier one sample late. With one channel a one-sample latency and a one-sample sampling
+    # lag of that channel are the same model (with two, the recalibration tells them apart by
+    # their difference): the delay is a candidate, its rival the sampling lag, never named
+    # (rig-076, creep at 402 Hz, had named such a delay at 0.57)
+    from piezo_fmu.diagnose.run import analyse
+    from piezo_fmu.diagnose.select import CONFIDENT
+
+    rec, raw = _rig_recording("rig-122")
+    assert rec.truth["mechanisms"] == ["time_delay"] and rec.truth["channels"] == ["x"]
+    res = analyse(raw).result
+    assert "time_delay" not in res["final"]["effects"]
+    cand = next(c for c in res["candidates"] if c["effect"] == "time_delay")
+    assert cand["confidence"] < CONFIDENT
+    assert cand["parameters"]["samples"] == 1
+    assert cand["evidence"]["strongest_alternative"]["effect"] == "sampling_lag"
+    assert "sampling_lag" in cand["why_not_named"]
+
+
 def test_a_lone_fast_creep_element_is_not_called_creep():
     # rig-140: a clean Bouc-Wen device driven by multisines up to 195 Hz. A single creep element of
     # 3.2 ms (gain 0.15) was named at confidence 0.80: the loop's different gain for the small fast

@@ -21,6 +21,7 @@ import numpy as np
 from ..core.preisach import grid_cells
 from .engine import amplifier_output, chain, lowpass, predict
 from .fit import Fitter, Structure
+from .residuals import taken_in_holds
 
 __all__ = ["CATALOGUE", "Mechanism", "describe_parameters", "plausible", "propose", "swapped_mode"]
 
@@ -218,6 +219,13 @@ MODE_OWN_BAND = 0.1
 MODE_BAND_WIDTH = 1.25   # that band: f_n / width .. f_n * width
 MODE_SWAP_STARTS = (0.4, 0.63, 1.6, 2.5, 4.0, 6.3)   # first mode restarted at these x the old one
 MODE_SWAP_EXPLAINED = 0.8   # the share of the structured residual such a further mode must explain
+# a thermal drift goes on while the command holds still: there the residual must take at least
+# this share of its correction when the holds can tell (strength: the z a full share would have).
+# Rig survey, 2026-11-26: named true drifts 0.57-1.5 (rig-004, 012, 035, 059, 085, 089, 090, 098,
+# 103, 124, 155, 161-182), false drift candidates -0.06-0.10 (clean rig-050's Bouc-Wen loop over
+# a slow multisine; rig-105, 144); synth drifts 1.00-1.06
+DRIFT_HOLD_TAKEN = 0.3
+DRIFT_HOLD_STRENGTH = 3.0
 SHAPE_GRID = 6        # steps of the KP cells' Preisach grid over the recorded stack voltages (21 cells)
 SHAPE_GRID_FINE = 8   # the finer grid a named shape may ask for next (36 cells)
 
@@ -548,6 +556,11 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
             return False, (f"the same slow trend is in the sensor voltage ({100 * share:.0f} % of what a "
                            "trend of the force would give): it moves the force, so it is not a drift of "
                            "the displacement reading")
+        held = taken_in_holds(fitter, p_before, p_after, "x")
+        if held is not None and held[1] >= DRIFT_HOLD_STRENGTH and held[0] < DRIFT_HOLD_TAKEN:
+            return False, (f"where the command holds still (a drift goes on there as in motion) the data "
+                           f"take {held[0]:.2f} of its correction (test strength {held[1]:.0f}): a trend "
+                           "of the moving part, not a drift of the device")
         own = _own_channel_share(fitter, p_before, p_after, "x")
         if own is not None and own < 0.15:
             return False, (f"fitted to the displacement alone it explains {100 * max(own, 0):.0f} % of its "

@@ -15,7 +15,8 @@ from .engine import predict
 from .fit import Fitter
 from .stats import psd
 
-__all__ = ["ACCEPT", "full_residuals", "residual_peaks", "residual_sets", "spectral_peaks"]
+__all__ = ["ACCEPT", "full_residuals", "hold_runs", "residual_peaks", "residual_sets", "spectral_peaks",
+           "taken_in_holds"]
 
 ACCEPT = {
     "p_lr": 1e-3,            # likelihood-ratio test on training rows (effective sample size)
@@ -90,3 +91,45 @@ def spectral_peaks(e, fs, n=3, fmin=5.0):
         off = 0.5 * (a - c) / den if den < 0 else 0.0
         out.append(float(f[k] + np.clip(off, -0.5, 0.5) * df))
     return out
+
+
+HOLD_MIN_S = 0.2       # a hold: the command exactly constant for at least this long [s]
+HOLD_SETTLE_S = 0.02   # its first part is left out (the transient of the step before it) [s]
+
+
+def hold_runs(u, dt):
+    """``(start, stop)`` sample ranges where the command ``u`` stays exactly constant for at least
+    ``HOLD_MIN_S``, each without its first ``HOLD_SETTLE_S``."""
+    span = float(np.ptp(u)) or 1.0
+    moves = np.flatnonzero(np.abs(np.diff(u)) > 1e-9 * span) + 1
+    edges = np.concatenate([[0], moves, [u.size]])
+    skip = int(round(HOLD_SETTLE_S / dt))
+    return [(int(a) + skip, int(b)) for a, b in zip(edges[:-1], edges[1:])
+            if (b - a) * dt >= HOLD_MIN_S and b - a - skip > 10]
+
+
+def taken_in_holds(fitter: Fitter, p_before, p_after, ch):
+    """How much of the change from ``p_before`` to ``p_after`` in channel ``ch`` the residual of
+    ``p_before`` takes within the command's holds, each hold's mean removed (so only the motion
+    during a hold counts): ``(beta, strength)``, beta the regression coefficient (1: all of it, 0:
+    none), strength the rms of the change within holds over the noise times the square root of
+    their samples (the z a beta of 1 would have); ``None`` without holds or without the channel."""
+    num = den = 0.0
+    for r in fitter.recs:
+        y = getattr(r, ch)
+        if y is None:
+            continue
+        runs = hold_runs(r.u, r.dt)
+        if not runs:
+            continue
+        before = predict(r, fitter.dev, p_before)[ch]
+        change = predict(r, fitter.dev, p_after)[ch] - before
+        for a, b in runs:
+            e = y[a:b] - before[a:b]
+            d = change[a:b] - np.mean(change[a:b])
+            num += float((e - np.mean(e)) @ d)
+            den += float(d @ d)
+    noise = fitter.noise.get(ch, 0.0)
+    if den <= 0.0 or noise <= 0.0:
+        return None
+    return num / den, math.sqrt(den) / noise

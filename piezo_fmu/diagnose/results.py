@@ -190,8 +190,10 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
     out_candidates = []
     for f in candidates:
         c = _finding(f, recs, ctxs, dev, noise, p_final, struct_final, dt)
-        c["why_not_named"] = (f"confidence {f['confidence']:.2f} is below {CONFIDENT}: the data support it, "
-                              "but not clearly enough to put it into the model")
+        same = (f.get("rival") or {}).get("why")
+        c["why_not_named"] = (f"confidence {f['confidence']:.2f} is below {CONFIDENT}: "
+                              + (f"{same}, an ordinary item (rival {f['rival']['effect']})" if same else
+                                 "the data support it, but not clearly enough to put it into the model"))
         out_candidates.append(c)
     # final residual tests and what is still unexplained
     final_preds = [predict(r, dev, p_final) for r in recs]

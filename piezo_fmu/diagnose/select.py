@@ -28,6 +28,7 @@ from .catalogue import CATALOGUE, plausible, propose, shape_size, swapped_mode
 from .decide import (CONFIDENT, at_bound, at_noise, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score)
 from .fit import Fitter, free_names, get_value, set_value, strip
+from .recalibrate import MAX_LAG
 from .residuals import ACCEPT, full_residuals, residual_peaks, residual_sets
 from .rivals import (ORDINARY_ADOPTIONS, creep_before_drift, delay_or_lag, drift_both, drift_or_creep, ordinary_found,
                      physics_before_shape, resonance_or_mode)
@@ -50,6 +51,18 @@ SHAPE_REMOVED = 3.0
 
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
+
+
+def sampling_lag_rival(fitter, p):
+    """True when the delay of ``p`` is also a sampling lag of the one recorded channel: every
+    recording has one channel and the delay is 1..``MAX_LAG`` whole samples (the recalibration looks
+    for sampling lags only with two channels, where they are told from a latency by their
+    difference)."""
+    chans = {c for r in fitter.recs for c in r.channels()}
+    if len(chans) != 1 or any(len(r.channels()) != 1 for r in fitter.recs) or p.delay <= 0:
+        return False
+    n = p.delay / fitter.dt
+    return abs(n - round(n)) < 1e-6 and 1 <= round(n) <= MAX_LAG
 
 
 def coupled(fitter, name, struct, s_new):
@@ -396,6 +409,14 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         # not the same part another way: it does not make this finding less unique
         rival = (f.get("rival") or {}).get("effect")
         alt = 0.0 if rival in accepted else f["alt_share"]
+        if f["name"] == "time_delay" and sampling_lag_rival(fitter, f["after"]):
+            # with one channel a delay of a whole sample or two is that channel's sampling lag as
+            # well (the same model: an ordinary item, recalibrated on two channels): a coin toss
+            # between the two, never confident
+            alt = 1.0
+            f["rival"] = {"effect": "sampling_lag", "passed": True, "explained_share": {
+                c: round(v["explained"], 4) for c, v in f["cmp"]["channels"].items()},
+                "why": "one recorded channel: a lag of whole samples of that channel gives the same model"}
         f["confidence"] = confidence(f["cmp"], f["name"], alt)
 
     # -- weak findings become candidates: the model keeps only the confident ones -----------------------
