@@ -741,8 +741,10 @@ def test_a_further_mode_that_does_not_ring_at_its_frequency_is_not_named(monkeyp
     # rig-040: a Krasnosel'skii-Pokrovskii device at 442 Hz with a one-sample command delay. A
     # "further mode" at 164 Hz (zeta 0.12) was named: 1 % of what it changed lay near 164 Hz, the
     # rest reshaped the response elsewhere. A further mode must ring at its own frequency. (Since
-    # the swapped start, the better fit there is a heavily damped "mode", rejected as such; the
-    # rule is checked on the grid's start alone)
+    # the swapped start, the better fit there is a heavily damped "mode", rejected as such; since
+    # the first mode hands its lag to the amplifier when switched off, the delay itself is found
+    # first. The rule is checked on the grid's start alone, with the delay kept out of the search
+    # as when its search had missed it)
     from piezo_fmu.diagnose import select
     from piezo_fmu.diagnose.catalogue import MODE_OWN_BAND
     from piezo_fmu.diagnose.run import analyse
@@ -752,6 +754,8 @@ def test_a_further_mode_that_does_not_ring_at_its_frequency_is_not_named(monkeyp
     res = analyse(raw).result
     assert "extra_resonance" not in res["final"]["effects"], res["findings"]
     monkeypatch.setattr(select, "swapped_mode", lambda *args: None)
+    propose = select.propose
+    monkeypatch.setattr(select, "propose", lambda name, *a: None if name == "time_delay" else propose(name, *a))
     res = analyse(raw).result
     assert "extra_resonance" not in res["final"]["effects"], res["findings"]
     why = [r["why"] for r in res["rejected"] if r["effect"] == "extra_resonance"]
@@ -808,10 +812,13 @@ def test_a_delay_taken_for_both_lag_stages_is_searched_with_both(monkeypatch):
     pairs = [(a, b) for a, b in zip(calls, calls[1:]) if a["two_stages"] and not a["both"] and b["both"]]
     assert pairs, calls
     for held, scaled in pairs:
-        assert scaled["cost"] < 0.9 * held["cost"], (held, scaled)        # measured: 0.86, 0.85
+        # never worse; the later rounds search from stages the earlier fits had already shortened
+        assert scaled["cost"] <= held["cost"], (held, scaled)
         assert scaled["samples"] == pytest.approx(1.0)
         assert scaled["lag"] < held["lag"]          # the second stage gave up what the delay takes
-    first = pairs[0][1]
+    held, first = pairs[0]
+    # from the recalibration's two stages (1.5 + 2.2 ms): clearly better, most of the lag gone
+    assert first["cost"] < 0.9 * held["cost"], (held, first)           # measured: 0.86
     assert first["lag"] < first["lag_before"] - 0.5 * delay, first     # measured: 3.96 -> 0.27 ms
 
 

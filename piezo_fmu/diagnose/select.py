@@ -58,8 +58,7 @@ def sampling_lag_rival(fitter, p):
     recording has one channel and the delay is 1..``MAX_LAG`` whole samples (the recalibration looks
     for sampling lags only with two channels, where they are told from a latency by their
     difference)."""
-    chans = {c for r in fitter.recs for c in r.channels()}
-    if len(chans) != 1 or any(len(r.channels()) != 1 for r in fitter.recs) or p.delay <= 0:
+    if len({c for r in fitter.recs for c in r.channels()}) != 1 or p.delay <= 0:
         return False
     n = p.delay / fitter.dt
     return abs(n - round(n)) < 1e-6 and 1 <= round(n) <= MAX_LAG
