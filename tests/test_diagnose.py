@@ -877,7 +877,6 @@ def test_a_trend_the_holds_do_not_show_is_not_a_drift():
 def test_the_holds_take_all_of_a_true_drift(monkeypatch):
     # the measure behind the rule above, on a drift the record really has (rig-012: a ramp-form
     # drift, holds over 98 % of the record) and on a command without holds
-    from piezo_fmu.diagnose.fit import Fitter
     from piezo_fmu.diagnose.residuals import hold_runs, taken_in_holds
 
     u = np.concatenate([np.zeros(300), np.full(50, 2.0), np.sin(np.arange(400) / 20.0), np.full(400, 1.0)])
@@ -894,7 +893,7 @@ def test_the_holds_take_all_of_a_true_drift(monkeypatch):
     seen = []
     orig = taken_in_holds
 
-    def spy(fitter: Fitter, p0, p1, ch):
+    def spy(fitter, p0, p1, ch):
         out = orig(fitter, p0, p1, ch)
         seen.append(out)
         return out

@@ -19,6 +19,7 @@ import numpy as np
 from .catalogue import propose
 from .decide import noise_levels, score
 from .fit import free_names, get_value, strip
+from .recalibrate import ITEM_K, ITEM_PARAMS, adopt_mode, drop, mode_at
 from .residuals import ACCEPT, residual_sets
 from .stats import compare
 
@@ -168,7 +169,6 @@ def resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd):
     size, the further mode's parameters against the first mode's and its pick-off's, within
     ``MODE_EVIDENCE``), the first mode is recalibrated and nothing is named. Returns the new
     parameters or ``None``."""
-    from .recalibrate import ITEM_K, adopt_mode, drop, mode_at
 
     if best["name"] != "extra_resonance" or recal is None or (
             "mech_f" in fitter.ordinary and "mode" not in best["dropped"]):
@@ -207,7 +207,6 @@ def delay_or_lag(fitter, best, struct, p_base, recal, step, rnd):
     :data:`LAG_EVIDENCE` of the delay (BIC, effective sample size), the second stage is taken into
     the recalibration and nothing is named (once per diagnosis: the delay searched again beside the
     second stage then stands on its own). Returns the new parameters or ``None``."""
-    from .recalibrate import ITEM_PARAMS, drop
 
     fp = best["fit"].params
     if best["name"] != "time_delay" or recal is None or fp.tau2 > 0.0 \

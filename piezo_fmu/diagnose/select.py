@@ -28,7 +28,7 @@ from .catalogue import CATALOGUE, plausible, propose, shape_size, swapped_mode
 from .decide import (CONFIDENT, at_bound, at_noise, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score)
 from .fit import Fitter, free_names, get_value, set_value, strip
-from .recalibrate import MAX_LAG
+from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, drop, present, without
 from .residuals import ACCEPT, full_residuals, residual_peaks, residual_sets
 from .rivals import (ORDINARY_ADOPTIONS, creep_before_drift, delay_or_lag, drift_both, drift_or_creep, ordinary_found,
                      physics_before_shape, resonance_or_mode)
@@ -127,14 +127,12 @@ def _without_weak(fitter, current, struct, p_base, before):
 
 
 def _free(fitter, name, struct, s_new, dropped):
-    from .recalibrate import ITEM_PARAMS
     gone = {n for it in dropped for n in ITEM_PARAMS[it]}
     return [n for n in coupled(fitter, name, struct, s_new) if n not in gone]
 
 
 def _bic_worth(fitter, fr, dropped):
     """-BIC (up to a constant) of a fitted candidate that does without the ordinary items ``dropped``."""
-    from .recalibrate import ITEM_K
     k = -sum(ITEM_K[i] for i in dropped)
     return -fitter.n_eff * math.log(max(fr.cost, 1e-300)) - k * math.log(max(fitter.n_eff, 2.0))
 
@@ -144,7 +142,6 @@ def _simpler(fitter, name, struct, s_new, fr, recal, step, dropped=()):
     a sampling lag) had absorbed: try it without each of them; keep the simpler model when the
     fit is as good as the extra parameters are worth (BIC, effective sample size). Returns the
     fit and the items it does without."""
-    from .recalibrate import ITEM_K, present, without
 
     dropped = list(dropped)
     if recal is None or name not in FAST:
@@ -201,7 +198,6 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             if name in FAST and recal is not None:
                 # a fast mechanism may be what the fast ordinary items stand in for: screen it also
                 # from the model without them (both are fitted; the better by BIC is kept)
-                from .recalibrate import present, without
                 items = present(fitter, recal)
                 if items:
                     base = held
@@ -267,7 +263,6 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 fits.append(_simpler(fitter, name, struct, s_new, fr, recal, step, dropped0))
             fr, dropped = max(fits, key=lambda f: _bic_worth(fitter, f[0], f[1]))
             sets_new, _ = residual_sets(fitter, fr.params)
-            from .recalibrate import ITEM_K
             k = s_new.n_params() - struct.n_params() - sum(ITEM_K[i] for i in dropped)
             cmp = compare(sets_cur, sets_new, k, noise)
             ok = plausible(name, fitter, current, fr.params, cmp, cctx)
@@ -357,7 +352,6 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                      for t in tried if t is not best and not t["passed"]]
         current, struct = best["fit"].params, best["struct"]
         if best["dropped"]:
-            from .recalibrate import drop
             recal.params = current
             for item in best["dropped"]:
                 drop(fitter, recal, item, why=f"{best['name']} explains it")
