@@ -689,6 +689,22 @@ def test_a_further_mode_at_the_devices_first_mode_is_recalibrated_not_named():
             assert any(r["effect"] == "extra_resonance" and "first mode" in r["why"] for r in res["rejected"])
 
 
+def test_a_diverged_refit_of_the_nominal_model_does_not_replace_it():
+    # rig-025: a further mode (178 Hz) and a leakage on a device whose first mode is at 741 Hz.
+    # Both are named; the nominal model re-fitted at the end without them (the ordinary physics
+    # found since kept) diverged and was reported as the "before" model: 183 um rms in x against
+    # 0.5 for the recalibrated nominal model (noise 0.026 um). A refit that ends worse than the
+    # model it replaces is not taken
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-025")
+    res = analyse(raw).result
+    assert res["final"]["effects"] == ["extra_resonance", "sensor_leakage"], res["rejected"]
+    before, after = res["baseline"]["rmse"], res["final"]["rmse"]
+    assert before["x"] < 1.0 and before["us"] < 0.1, before
+    assert after["x"] < 0.5 * before["x"] and after["us"] < 0.5 * before["us"]
+
+
 def test_a_further_mode_taken_for_the_first_mode_is_found_in_its_place():
     # rig-119: a mode of 148 Hz (zeta 0.006) in series with a device whose own first mode is at
     # 485 Hz; the recalibration took the 148 Hz mode for the first mode and nothing was named
