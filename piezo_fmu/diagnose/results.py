@@ -461,5 +461,9 @@ def recal_summary(p, dev, dt, recal):
         "sensor_offset_V": {"value": val(p.off_s, 6), "uncertainty": lin.get("off_s")},
         "saturation_um": ({"value": val(p.y_sat, 6), "relative_uncertainty": unc.get("y_sat")}
                           if math.isfinite(p.y_sat) else None),
+        "loop": {"value": f"{len(p.thresholds)} play operators" + (f", {p.n_cells} KP cells" if p.n_cells else "")
+                 + (" (refined: an ordinary loop difference, not named)" if rep.get("loop", {}).get("refined")
+                    else ""),
+                 "refined": False, **rep.get("loop", {})},
     }
     return out
