@@ -427,6 +427,7 @@ def recal_summary(p, dev, dt, recal):
     unc = recal.report.get("uncertainty", {}) if recal else {}
     lin = recal.report.get("uncertainty_linear", {}) if recal else {}
     rep = recal.report if recal else {}
+    loop = rep.get("loop", {})
     f1, z1 = p.mode(dev)
 
     def val(v, digits=5):
@@ -461,9 +462,10 @@ def recal_summary(p, dev, dt, recal):
         "sensor_offset_V": {"value": val(p.off_s, 6), "uncertainty": lin.get("off_s")},
         "saturation_um": ({"value": val(p.y_sat, 6), "relative_uncertainty": unc.get("y_sat")}
                           if math.isfinite(p.y_sat) else None),
-        "loop": {"value": f"{len(p.thresholds)} play operators" + (f", {p.n_cells} KP cells" if p.n_cells else "")
-                 + (" (refined: an ordinary loop difference, not named)" if rep.get("loop", {}).get("refined")
-                    else ""),
-                 "refined": False, **rep.get("loop", {})},
+        "loop": {"value": f"{len(p.thresholds)} play operators"
+                          + (f", {p.n_cells} KP cells" if p.n_cells else "")
+                          + (" (refined: an ordinary loop difference, not named)"
+                             if loop.get("refined") else ""),
+                 "refined": False, **loop},
     }
     return out

@@ -137,9 +137,8 @@ def _confirmed_loop(tried, struct):
     if t is None or t["passed"]:
         return None
     lo, hi = LOOP_HELDOUT_BETA
-    if all(lo <= v["beta_heldout"] <= hi and v["z_heldout"] >= LOOP_HELDOUT_Z for v in t["cmp"]["channels"].values()):
-        return t
-    return None
+    ch = t["cmp"]["channels"].values()
+    return t if all(lo <= v["beta_heldout"] <= hi and v["z_heldout"] >= LOOP_HELDOUT_Z for v in ch) else None
 
 
 def _without_weak(fitter, current, struct, p_base, before):
@@ -322,10 +321,11 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             loop = _confirmed_loop(tried, struct)
             if loop is not None:
                 ch = loop["cmp"]["channels"]
+                took = ", ".join(f"{c}: beta {v['beta_heldout']:.2f}, z {v['z_heldout']:.1f}"
+                                 for c, v in ch.items())
                 step(f"round {rnd + 1}: the finer loop fails ({loop['why']}), but the held-out data take it on "
-                     "every channel (" + ", ".join(f"{c}: beta {v['beta_heldout']:.2f}, z {v['z_heldout']:.1f}"
-                                                   for c, v in ch.items())
-                     + "): an ordinary loop difference, taken into the recalibration (not named)")
+                     f"every channel ({took}): an ordinary loop difference, taken into the recalibration "
+                     "(not named)")
                 struct, current = _refine(fitter, loop, struct, p_base, recal,
                                           max(removed_rms(v) for v in ch.values()),
                                           max(v["explained"] for v in ch.values()))
