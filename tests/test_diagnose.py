@@ -725,7 +725,6 @@ def test_a_further_mode_taken_for_the_first_mode_is_found_in_its_place():
     # 485 Hz; the recalibration took the 148 Hz mode for the first mode and nothing was named
     # (16 noise rms left in x). A further mode is also screened where the first mode was, the
     # first mode restarted elsewhere. rig-089 (with a drift, 5 k samples): the same at 121 Hz
-    from piezo_fmu.diagnose.catalogue import MODE_SWAP_EXPLAINED
     from piezo_fmu.diagnose.run import analyse
 
     for case in ("rig-089", "rig-119"):
@@ -738,15 +737,43 @@ def test_a_further_mode_taken_for_the_first_mode_is_found_in_its_place():
         assert found["zeta"] == pytest.approx(truth["extra_resonance.zeta"]["value"], rel=0.1), case
     # rig-119: the one-mode model left 0.150 um held-out (32 x the noise), the two modes 0.0058
     assert res["final"]["rmse"]["x"] < 0.05 * res["baseline"]["rmse"]["x"]
-    # rig-004 (a drift and a delay, a first mode at 302 Hz): in its fourth round the swapped mode
-    # explains 67 %, its own mode drawn another way
+    # rig-004 (a drift and a delay, a first mode at 302 Hz, zeta 0.015): its own mode is drawn the
+    # other way too. The swap explains 97 % in round 3 (the delay named two samples short), but it
+    # moves the first mode to 612 Hz at zeta 0.22, a lag: two modes are claimed only when both
+    # ring (catalogue.MODE_LIGHT); before the first mode's damping was searched from 0.007, round 4
+    # swapped with 67 %, under MODE_SWAP_EXPLAINED
+    from piezo_fmu.diagnose.catalogue import MODE_LIGHT
+
     rec, raw = _rig_recording("rig-004")
     assert "extra_resonance" not in rec.truth["mechanisms"]
     res = analyse(raw).result
     assert "extra_resonance" not in res["final"]["effects"]
-    why = [r["why"] for r in res["rejected"] if r["effect"] == "extra_resonance" and "drawn another way" in r["why"]]
+    why = [r["why"] for r in res["rejected"] if r["effect"] == "extra_resonance" and "not two modes" in r["why"]]
     assert why, res["rejected"]
-    assert float(why[0].split("explains only ")[1].split(" %")[0]) < 100 * MODE_SWAP_EXPLAINED
+    assert float(why[0].split("at damping ratio ")[1].split(",")[0]) > MODE_LIGHT
+
+
+def test_a_lightly_damped_fixture_mode_is_not_taken_for_the_first_mode():
+    # rig-177: a further mode of 234 Hz at zeta 0.005 (a fixture's) on a device whose own first
+    # mode (6.7 kHz, zeta 0.12) lies above the Nyquist frequency of its 4.39 kHz sampling. The
+    # recalibration took the 234 Hz mode for the first mode (zeta 0.005, the sensor on the load
+    # spring) and said "nothing is missing" with 41 noise rms of it in x. A stack's own mode is
+    # searched at damping ratios from fit.MODE_ZETA_MIN (the device class's 0.01, -30 %): there the
+    # fit settles at the end of its range and the further mode is named
+    from piezo_fmu.diagnose.fit import MODE_ZETA_MIN
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-177")
+    truth = rec.truth["params"]
+    assert truth["extra_resonance.zeta"]["value"] < MODE_ZETA_MIN < truth["mechanics.zeta1"]["value"]
+    res = analyse(raw).result
+    assert res["final"]["effects"] == ["extra_resonance"], res["rejected"]
+    found = next(f for f in res["findings"] if f["effect"] == "extra_resonance")
+    assert found["confidence"] >= 0.5
+    assert found["parameters"]["f_n_Hz"] == pytest.approx(truth["extra_resonance.f"]["value"], rel=0.01)
+    mode = res["baseline"]["recalibrated"].get("first_mode_hz", {})
+    assert not (mode.get("identified") and abs(math.log(mode["value"] / found["parameters"]["f_n_Hz"])) < 0.2), mode
+    assert res["final"]["rmse"]["x"] < 0.3 * res["baseline"]["rmse"]["x"]
 
 
 def test_a_heavily_damped_mode_in_the_contact_force_is_recalibrated():

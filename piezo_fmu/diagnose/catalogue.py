@@ -219,6 +219,7 @@ MODE_OWN_BAND = 0.1
 MODE_BAND_WIDTH = 1.25   # that band: f_n / width .. f_n * width
 MODE_SWAP_STARTS = (0.4, 0.63, 1.6, 2.5, 4.0, 6.3)   # first mode restarted at these x the old one
 MODE_SWAP_EXPLAINED = 0.8   # the share of the structured residual such a further mode must explain
+MODE_LIGHT = 0.15           # a mode's damping ratio up to which it rings (above: it only adds phase lag)
 # a thermal drift goes on while the command holds still: there the residual must take at least
 # this share of its correction when the holds can tell (strength: the z a full share would have).
 # Rig survey, 2026-11-26: named true drifts 0.57-1.5 (rig-004, 012, 035, 059, 085, 089, 090, 098,
@@ -516,7 +517,7 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
         return True, ""
     if name == "extra_resonance":
         f, z = p_after.res
-        if z > 0.15:
+        if z > MODE_LIGHT:
             return False, f"damping ratio {z:.2f}: not a lightly damped mode (it only adds phase lag)"
         if f > 0.45 / dt:
             return False, "above the Nyquist frequency"
@@ -533,11 +534,15 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
         f0 = p_before.mode(fitter.dev)[0]
         if "mech_f" in fitter.ordinary and abs(math.log(f / f0)) < math.log(1.2):
             # it took the recalibrated first mode's place, the first mode moved elsewhere: another
-            # account of the main resonance, taken only when it explains nearly all that the
-            # one-mode model left (rig-119: a 148 Hz mode in series taken as the first mode, the
-            # true one found at 487 Hz, explains 100 %, rig-089 86 %; a device's own mode drawn in
-            # the other place explains a part: 25-44 % on the clean rig-125, 67 % on rig-004)
+            # account of the main resonance, taken only when it explains nearly all the one-mode
+            # model left (rig-119: a 148 Hz mode in series taken as the first mode, the true one
+            # found at 487 Hz, explains 100 %, rig-089 86 %; a device's own mode drawn the other way: 25-44 %)
             explained = max(v["explained"] for v in ch.values())
+            z1 = p_after.mode(fitter.dev)[1]
+            if z1 > MODE_LIGHT:     # two modes only when both ring (rig-004: 612 Hz, zeta 0.22, a lag)
+                return False, (f"it takes the place of the recalibrated first mode ({f0:.4g} Hz) and moves "
+                               f"that to {f1:.4g} Hz at damping ratio {z1:.2f}, where it only adds phase "
+                               "lag: the device's own mode with a lag beside it, not two modes")
             if explained < MODE_SWAP_EXPLAINED:
                 return False, (f"it takes the place of the recalibrated first mode ({f0:.4g} Hz) and moves "
                                f"that to {f1:.4g} Hz, but explains only {100 * explained:.0f} % of the "

@@ -314,7 +314,7 @@ def mode_at(fitter: Fitter, p, struct: Structure, f, zeta, without_items=()):
     for pick in picks:
         q = p.copy()
         q.pick = pick
-        q.set_mode(fitter.dev, f=float(np.clip(f, lo * 1.02, hi / 1.02)), zeta=float(np.clip(zeta, 0.004, 0.3)))
+        q.set_mode(fitter.dev, f=float(np.clip(f, lo * 1.02, hi / 1.02)), zeta=float(np.clip(zeta, 1.2 * fitter.bounds("mech_zeta")[0], 0.3)))
         fr = fitter.fit(q, struct, free=free, max_nfev=10, held=True)
         if best is None or fr.cost < best.cost:
             best = fr
