@@ -310,11 +310,12 @@ def mode_at(fitter: Fitter, p, struct: Structure, f, zeta, without_items=()):
     gone = {n for it in without_items for n in ITEM_PARAMS[it]} | {"mech_f", "mech_zeta"}
     free = [n for n in fitter.ordinary if n not in gone] + ["mech_f", "mech_zeta"]
     lo, hi = fitter.bounds("mech_f")
+    z_lo = 1.2 * fitter.bounds("mech_zeta")[0]
     best = None
     for pick in picks:
         q = p.copy()
         q.pick = pick
-        q.set_mode(fitter.dev, f=float(np.clip(f, lo * 1.02, hi / 1.02)), zeta=float(np.clip(zeta, 1.2 * fitter.bounds("mech_zeta")[0], 0.3)))
+        q.set_mode(fitter.dev, f=float(np.clip(f, lo * 1.02, hi / 1.02)), zeta=float(np.clip(zeta, z_lo, 0.3)))
         fr = fitter.fit(q, struct, free=free, max_nfev=10, held=True)
         if best is None or fr.cost < best.cost:
             best = fr
