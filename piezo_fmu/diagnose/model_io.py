@@ -145,6 +145,7 @@ class Recording:
     t0: float = 0.0          # time of the first sample in the file [s]
     block: np.ndarray | None = None   # validation block of every sample
     sign: dict = field(default_factory=dict)   # channel -> +1/-1 (file = sign * model)
+    split: str = ""          # how the held-out blocks were chosen (recordings.blocks)
 
     @property
     def n(self):

@@ -307,8 +307,8 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
                   "structured_rms": final_struct_rms, "tests": tests, "verdict": verdict,
                   "nothing_missing": nothing_missing},
         "validation": {
-            "method": "interleaved blocks: each recording is cut into equal consecutive blocks; every "
-                      f"{HELDOUT_EVERY}th block (starting with block {HELDOUT_EVERY // 2}) is held out",
+            "method": "interleaved blocks: each recording is cut into equal consecutive blocks; "
+                      + "; ".join(f"{r.name}: held out {r.split or f'every {HELDOUT_EVERY}th block'}" for r in recs),
             "blocks_per_recording": int(np.max(first.block) + 1), "block_s": block_s,
             "heldout_fraction": float(np.mean(np.concatenate([r.heldout for r in recs]))),
             "fitted_on": "the other blocks only (every parameter, every candidate)",
