@@ -189,6 +189,35 @@ def test_the_linear_solve_recovers_a_drift_that_reaches_a_load_pickoff(tau_leak)
         assert np.max(np.abs(got[c] - pr[c])) < 1e-6 * np.ptp(pr[c]), c
 
 
+def test_the_linear_solve_starts_afresh_from_weights_deep_in_saturation():
+    # weights left from other dynamics can drive the stroke far past the saturation level (rig-145:
+    # 2e6 against 9.8e3 after its lag was swapped for a current limit); Gauss-Newton steps from
+    # there swung the cost by orders of magnitude and the screening never saw the limit
+    from piezo_fmu.diagnose.varpro import DEEP_SAT, solve_linear
+
+    assert DEEP_SAT < 200.0
+
+    m = load_model()
+    dt = 1e-3
+    t = np.arange(6001) * dt
+    u = 3.0 + 2.5 * np.sin(2 * np.pi * 1.0 * t) * (t > 0.5)
+    dev = device_from_model(m)
+    true = params_from_model(m, dt)
+    rec = Recording("a", t, dt, u, None, None, np.zeros(t.size, bool))
+    stroke = np.max(np.abs(predict(rec, dev, true)["x_h"]))
+    true.y_sat = 2.0 * stroke           # a sag of a third at the top
+    pr = predict(rec, dev, true)
+    rec = Recording("a", t, dt, u, pr["x"], pr["us"], np.zeros(t.size, bool))
+    lam = {"x": 1.0 / np.var(rec.x), "us": 1.0 / np.var(rec.us)}
+    p = true.copy()
+    p.weights = p.weights * 400.0      # |h| 200 x y_sat
+    for _ in range(2):                  # as an optimisation calls it: the steps accumulate
+        r = solve_linear([rec], dev, p, lam, gn_iter=2)
+    assert float(r @ r) < 1e-6 * rec.n
+    got = predict(rec, dev, p)
+    assert np.max(np.abs(got["x"] - pr["x"])) < 1e-3 * np.ptp(pr["x"])
+
+
 def test_synthetic_recordings_are_reproducible_and_hide_the_truth(tmp_path):
     a = make_case(3, ["creep"], "mid", ["steps", "sines"], fs=1000.0)
     b = make_case(3, ["creep"], "mid", ["steps", "sines"], fs=1000.0)
@@ -774,6 +803,25 @@ def test_a_lightly_damped_fixture_mode_is_not_taken_for_the_first_mode():
     mode = res["baseline"]["recalibrated"].get("first_mode_hz", {})
     assert not (mode.get("identified") and abs(math.log(mode["value"] / found["parameters"]["f_n_Hz"])) < 0.2), mode
     assert res["final"]["rmse"]["x"] < 0.3 * res["baseline"]["rmse"]["x"]
+
+
+def test_a_current_limit_behind_weights_deep_in_saturation_is_named():
+    # rig-145: a Bouc-Wen device with a 5.6 kV/s current limit (10 noise rms in x). The recalibrated
+    # lag stood in for the limit with weights that drive the stroke 200 x past the saturation
+    # level; the screening's solves started from them at the limit's dynamics, swung between 3e6
+    # and 2e9 and passed the limit by ("the fitted current limit never binds")
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-145")
+    res = analyse(raw).result
+    assert res["final"]["effects"] == ["amplifier_current_limit"], res["rejected"]
+    found = res["findings"][0]
+    assert found["confidence"] >= 0.5
+    truth = rec.truth["params"]           # the slew rate in the model's stack volts
+    slew = truth["amplifier_current_limit.slew"]["value"] * load_model()["amplifier"]["k_amp"] \
+        / truth["amplifier.gain"]["value"]
+    assert found["parameters"]["slew_V_per_s"] == pytest.approx(slew, rel=0.1)
+    assert res["final"]["rmse"]["x"] < 0.5 * res["baseline"]["rmse"]["x"]
 
 
 def test_a_heavily_damped_mode_in_the_contact_force_is_recalibrated():

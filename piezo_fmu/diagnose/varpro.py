@@ -25,6 +25,19 @@ S_TOL = 1e-9       # relative change of the sensor gain at which the alternation
 CELL_RIDGE = 1e-9  # ridge on the KP cells' weights, relative to each column's squared norm
 
 
+# the saturation's Gauss-Newton steps start from the current weights unless these drive the
+# stroke beyond DEEP_SAT x the saturation level somewhere: x = h / (1 + |h| / y_sat) within 10 %
+# of its rail, where the linearisation says nothing. Weights fitted for other dynamics could sit
+# there (rig-145: h 2e6 against y_sat 9.8e3 after the lag was swapped for a current limit; the
+# steps from there swung the cost between 3e6 and 2e9, against 1.1e4 from no sag, and the
+# screening never saw the limit)
+DEEP_SAT = 10.0
+
+
+def _deep(replays, lin_w, y_sat):
+    return any(float(np.max(np.abs(lin_w @ rp.z))) > DEEP_SAT * y_sat for rp in replays)
+
+
 def _design(rec, dev, p, rp, lin_w):
     """Columns (per weight) of x and of the sensor force, plus the known part from saturation."""
     z = rp.z
@@ -64,6 +77,8 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
     lin_w = p.all_weights() if np.any(p.all_weights()) else None
     iters = 1
     if math.isfinite(p.y_sat):
+        if lin_w is not None and _deep(replays, lin_w, p.y_sat):
+            lin_w = None        # start the saturation's linearisation afresh from no sag
         iters = gn_iter + (1 if lin_w is None else 0)
     # a load pick-off follows the push rod: a drift of the displacement reaches the sensor too
     nt = drift_terms if (has_x and has_us and p.pick == "load") else 0
