@@ -34,15 +34,12 @@ CELL_RIDGE = 1e-9  # ridge on the KP cells' weights, relative to each column's s
 DEEP_SAT = 10.0
 
 
-def _deep(replays, lin_w, y_sat):
-    return any(float(np.max(np.abs(lin_w @ rp.z))) > DEEP_SAT * y_sat for rp in replays)
-
-
-def _design(rec, dev, p, rp, lin_w):
-    """Columns (per weight) of x and of the sensor force, plus the known part from saturation."""
+def _design(rec, dev, p, rp, lin_w, h0=None):
+    """Columns (per weight) of x and of the sensor force, plus the known part from saturation
+    (linearised at the stroke ``h0`` of the weights ``lin_w``, computed when not given)."""
     z = rp.z
     if math.isfinite(p.y_sat) and lin_w is not None:
-        h0 = lin_w @ z
+        h0 = lin_w @ z if h0 is None else h0
         gp = 1.0 / (1.0 + np.abs(h0) / p.y_sat) ** 2
         c0 = saturate(h0, p.y_sat) - gp * h0
         cols = np.vstack([z * gp, c0[None, :]])
@@ -76,9 +73,12 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
     diff[:n, :n] -= np.eye(n, k=-1)             # the cells' weights as they are (any sign)
     lin_w = p.all_weights() if np.any(p.all_weights()) else None
     iters = 1
+    h0s = None                  # the stroke of the current weights (the first linearisation's)
     if math.isfinite(p.y_sat):
-        if lin_w is not None and _deep(replays, lin_w, p.y_sat):
-            lin_w = None        # start the saturation's linearisation afresh from no sag
+        if lin_w is not None:
+            h0s = [lin_w @ rp.z for rp in replays]
+            if any(float(np.max(np.abs(h))) > DEEP_SAT * p.y_sat for h in h0s):
+                lin_w = h0s = None      # start the saturation's linearisation afresh from no sag
         iters = gn_iter + (1 if lin_w is None else 0)
     # a load pick-off follows the push rod: a drift of the displacement reaches the sensor too
     nt = drift_terms if (has_x and has_us and p.pick == "load") else 0
@@ -95,8 +95,8 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
         before = _linear_state(p)
         kx, ks = nw + 1 + nd, nw + 2 + nt       # rows of the x and us designs
         Mx, cx, Ms, cs = np.zeros((kx, kx)), np.zeros(kx), np.zeros((ks, ks)), np.zeros(ks)
-        for r, rp in zip(recs, replays):
-            ax, asf = _design(r, dev, p, rp, lin_w)
+        for i, (r, rp) in enumerate(zip(recs, replays)):
+            ax, asf = _design(r, dev, p, rp, lin_w, None if h0s is None else h0s[i])
             if r.x is not None:
                 cmat = np.empty((kx, r.n))
                 cmat[:nw + 1] = ax
@@ -142,6 +142,7 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
                     break
             r_last = r_new
         lin_w = p.all_weights()
+        h0s = None
     if not want_residuals:
         return None
     if r_last is not None:
