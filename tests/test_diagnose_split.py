@@ -2,9 +2,8 @@
 import numpy as np
 import pytest
 
-from piezo_fmu.model import load_model
-
 from piezo_fmu.diagnose.recordings import HELDOUT_EVERY, N_BLOCKS, activity, blocks
+from piezo_fmu.model import load_model
 
 DT = 1e-3                      # [s]
 PER_BLOCK = 100                # samples per block (64 blocks)
@@ -71,6 +70,6 @@ def test_a_current_limit_whose_steps_were_all_held_out_is_named():
     assert found["confidence"] >= 0.5
     # the slew rate in the model's stack volts (the paper's amplifier gain against the rig's)
     truth = rec.truth["params"]
-    k_amp = load_model(None).sections["amplifier"]["k_amp"]
+    k_amp = load_model()["amplifier"]["k_amp"]
     slew = truth["amplifier_current_limit.slew"]["value"] * k_amp / truth["amplifier.gain"]["value"]
     assert found["parameters"]["slew_V_per_s"] == pytest.approx(slew, rel=0.3)
