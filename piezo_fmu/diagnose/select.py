@@ -26,7 +26,7 @@ import math
 
 from .catalogue import CATALOGUE, plausible, propose, shape_size, swapped_mode
 from .decide import (CONFIDENT, at_bound, at_noise, closeness, confidence, noise_levels, own_parameters,
-                     passes, removed_rms, score)
+                     passes, removed_rms, score, told_apart)
 from .fit import Fitter, free_names, get_value, set_value, strip
 from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, drop, present, without
 from .residuals import ACCEPT, full_residuals, residual_peaks, residual_sets
@@ -362,7 +362,9 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         b_score = score(best["cmp"], best["name"])
         # (a finer loop's cells bend to much of any residual: they rival a loop shape, not physics
         # the loop cannot have, which physics_before_shape already put first)
-        others = [(closeness(b_score, score(t["cmp"], t["name"])) * (1.0 if t["passed"] else 0.5), t)
+        # (and as far as the training rows cannot tell the two apart: the best one's BIC over the rival's)
+        others = [(closeness(b_score, score(t["cmp"], t["name"])) * (1.0 if t["passed"] else 0.5)
+                   * told_apart(best["cmp"], t["cmp"], best["struct"].n_params() - t["struct"].n_params()), t)
                   for t in tried if t is not best
                   and (t["name"] != "hysteresis_shape" or best["name"] == "hysteresis_shape")]
         alt = max([a for a, _ in others] + [0.0])
