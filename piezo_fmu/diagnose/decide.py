@@ -23,7 +23,7 @@ __all__ = ["CONFIDENT", "at_bound", "at_noise", "closeness", "confidence", "nois
            "passes", "removed_rms", "score", "told_apart"]
 
 CONFIDENT = 0.5              # findings at or above this confidence are named; below: candidates
-RIVAL_BIC = 30.0             # BIC units by which the best candidate must beat a rival to halve its closeness (x 0.37)
+RIVAL_BIC = 30.0             # a rival beaten head to head by this many BIC units keeps exp(-1) = 0.37 of its closeness
 
 
 def noise_levels(fitter: Fitter, p):
@@ -132,9 +132,7 @@ def told_apart(best_cmp, rival_cmp, k_more):
     the device's own, found in the next round)."""
     d, n_tot = 0.0, 0.0
     for c, b in best_cmp["channels"].items():
-        r = rival_cmp["channels"].get(c)
-        if r is None or b["n_eff"] <= 0 or r["n_eff"] <= 0:
-            continue
+        r = rival_cmp["channels"][c]
         n = min(b["n_eff"], r["n_eff"])
         d += n * (b["lr"] / b["n_eff"] - r["lr"] / r["n_eff"])
         n_tot += n
