@@ -194,3 +194,14 @@ def test_outputs_get_ordinary_permissions(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly():
+    # `piezo-fmu ... | head`: the output's reader closes the pipe before the command writes; the
+    # command stops with the shell's SIGPIPE status (141) and no traceback
+    proc = subprocess.Popen([sys.executable, "-m", "piezo_fmu", "validate", str(DEFAULT_MODEL)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait() == 141, err
+    assert "Traceback" not in err and "BrokenPipe" not in err

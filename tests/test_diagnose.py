@@ -836,6 +836,30 @@ def test_a_rival_the_training_rows_tell_apart_leaves_the_best_unique():
     assert 0.5 < told_apart(best, cmp(noise + 0.02 * fast), 0) <= 1.0
 
 
+def test_a_model_the_engine_cannot_step_screens_as_no_candidate():
+    # rig-039 (19.2 kHz): the mode screening's top grid point, a lightly damped mode at 0.45 fs beside
+    # the nominal first mode above the Nyquist frequency, made the engine return NaN; a NaN among
+    # the screening's costs scrambled their sort and the true 70 Hz mode was never fitted
+    from piezo_fmu.diagnose.fit import Fitter
+    from piezo_fmu.diagnose.recordings import make_recordings
+
+    fs = 19200.0
+    t = np.arange(int(0.5 * fs)) / fs
+    u = np.where(t > 0.1, 40.0, 0.0)
+    model = load_model()
+    dev, p = device_from_model(model), params_from_model(model, 1 / fs)
+    recs = make_recordings([{"name": "r", "time": t, "u": u, "x": 0.1 * u, "us": 0.001 * u}])
+    fitter = Fitter(recs, dev, {"x": 1.0, "us": 1.0})
+    q = p.copy()
+    q.res, q.res_at = (0.45 * fs, 0.005), "output"
+    assert np.isnan(predict(recs[0], dev, q, direct=True)["x"]).any()     # the engine's limit
+    assert fitter.quick(q) == math.inf
+    assert math.isfinite(fitter.quick(p))
+    # the same mode on the drive the engine steps: a cost like any other
+    q.res_at = "drive"
+    assert math.isfinite(fitter.quick(q))
+
+
 def test_creep_beside_a_delay_is_named_when_a_drift_fits_worse():
     # rig-170: a KP device at 3.4 kHz with creep and a two-sample delay (4 noise rms each). In the
     # first round creep explained 40 % of the structured residual, a drift 29 %; by what each left

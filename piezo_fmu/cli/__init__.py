@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from .. import __version__
@@ -70,6 +71,11 @@ def main(argv=None):
             raise
         print(f"piezo-fmu {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader of the output went away (`piezo-fmu diagnose ... | head`): stop quietly, with
+        # the shell's status for SIGPIPE; stdout goes to /dev/null so the exit flush cannot fail
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except KeyboardInterrupt:
         print(f"piezo-fmu {args.command}: interrupted; no partial output was left behind",
               file=sys.stderr)
