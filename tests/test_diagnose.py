@@ -717,7 +717,9 @@ def test_a_further_mode_at_the_devices_first_mode_is_recalibrated_not_named():
     # named it beside the drift. Since the first mode may be heavily damped with a contact-force
     # pick-off, the recalibration finds that mode itself; rig-179 (creep, the displacement only,
     # a first mode of 444 Hz) still finds it where a further mode is searched. Started from what
-    # the search found, the first mode explains it as well: ordinary physics
+    # the search found, the first mode explains it as well: ordinary physics. (rig-179's drift, a
+    # candidate at 0.47 beside the creep, stays one: with the creep in, its backward BIC gain falls
+    # from 4393 to 107, so the backward measure, 0.52, does not raise its confidence)
     from piezo_fmu.diagnose.run import analyse
 
     for case, truth in (("rig-098", ["thermal_drift"]), ("rig-179", ["creep"])):
@@ -836,10 +838,14 @@ def test_a_rival_the_training_rows_tell_apart_leaves_the_best_unique():
     assert 0.5 < told_apart(best, cmp(noise + 0.02 * fast), 0) <= 1.0
 
 
-def test_a_model_the_engine_cannot_step_screens_as_no_candidate():
+def test_a_stiff_output_mode_steps_and_a_nan_screens_as_no_candidate(monkeypatch):
     # rig-039 (19.2 kHz): the mode screening's top grid point, a lightly damped mode at 0.45 fs beside
-    # the nominal first mode above the Nyquist frequency, made the engine return NaN; a NaN among
-    # the screening's costs scrambled their sort and the true 70 Hz mode was never fitted
+    # the nominal first mode above the Nyquist frequency. Its companion matrix (coefficients 1 to
+    # 3e19 s^-4) lost every digit in scaling and squaring: a pole at |z| = 1.10 for 0.986, the
+    # engine returned NaN, and a NaN among the screening's costs scrambled their sort (the true
+    # 70 Hz mode was never fitted). Now the chain steps; a NaN, should an engine give one, is no
+    # candidate.
+    from piezo_fmu.diagnose import fit
     from piezo_fmu.diagnose.fit import Fitter
     from piezo_fmu.diagnose.recordings import make_recordings
 
@@ -852,12 +858,49 @@ def test_a_model_the_engine_cannot_step_screens_as_no_candidate():
     fitter = Fitter(recs, dev, {"x": 1.0, "us": 1.0})
     q = p.copy()
     q.res, q.res_at = (0.45 * fs, 0.005), "output"
-    assert np.isnan(predict(recs[0], dev, q, direct=True)["x"]).any()     # the engine's limit
-    assert fitter.quick(q) == math.inf
-    assert math.isfinite(fitter.quick(p))
-    # the same mode on the drive the engine steps: a cost like any other
+    x_out = predict(recs[0], dev, q, direct=True)["x"]
     q.res_at = "drive"
+    x_drive = predict(recs[0], dev, q, direct=True)["x"]
+    # the same mode after the mechanics or before them: one continuous chain, one step response
+    # once the ringing (0.5 / (zeta wn) = 1.8 ms) has died away
+    late = t > 0.15
+    assert np.all(np.isfinite(x_out))
+    np.testing.assert_allclose(x_out[late], x_drive[late], rtol=1e-6)
     assert math.isfinite(fitter.quick(q))
+    # a model an engine cannot step is no candidate (not a NaN among the costs)
+    monkeypatch.setattr(fit, "predict", lambda *a, **k: {"x": np.full(t.size, np.nan), "us": np.zeros(t.size)})
+    assert fitter.quick(q) == math.inf
+
+
+def test_a_lag_shorter_than_a_sample_is_searched_again_and_nothing_is_named():
+    # rig-183: a clean device sampled at 306 Hz (a two-stage amplifier, 0.66 + 0.38 ms). The
+    # thresholds' scale fit left the lag at 0.025 of a sample, 1.02x its lower limit, where its cost
+    # is flat: the weighted refit stayed there (training cost 4671 against 4629 at 0.65 ms) and the
+    # misfit went to a false thermal drift (confidence 0.78). Which side of the limit's 1 % margin
+    # the lag landed on decided it; now a lag the samples cannot see restarts from the nominal one.
+    from piezo_fmu.diagnose import run
+    from piezo_fmu.diagnose.fit import LAG_UNSEEN
+
+    rec, raw = _rig_recording("rig-183")
+    assert rec.truth["mechanisms"] == []
+    got = run.analyse(raw).result
+    assert got["final"]["effects"] == [], got["findings"]
+    dt = rec.time[1] - rec.time[0]
+    assert got["baseline"]["recalibrated"]["amplifier_tau_s"]["value"] > LAG_UNSEEN * dt
+
+
+def test_a_finding_a_later_one_diluted_is_judged_with_the_others_in():
+    # rig-141 (479 Hz): a one-sample delay and a loop shape. The delay, added first, explained 26 %
+    # of a residual the loop shape still filled (confidence 0.39, a candidate); with the shape in,
+    # the backward check finds it explains 73 % at a BIC gain of 447 (55 forward)
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-141")
+    assert sorted(rec.truth["mechanisms"]) == ["hysteresis_shape", "time_delay"]
+    res = analyse(raw).result
+    assert sorted(res["final"]["effects"]) == ["hysteresis_shape", "time_delay"], res["candidates"]
+    delay = next(f for f in res["findings"] if f["effect"] == "time_delay")
+    assert delay["confidence"] >= 0.5
 
 
 def test_creep_beside_a_delay_is_named_when_a_drift_fits_worse():
@@ -998,19 +1041,32 @@ def test_a_delay_taken_for_both_lag_stages_is_searched_with_both(monkeypatch):
 
 
 def test_a_finding_turned_candidate_leaves_the_final_model_no_worse_than_the_recalibrated():
-    # rig-004: a delay (5 samples at 3.95 kHz) and a drift. The delay was added first and the lag
-    # shrank beside it; its confidence ended at 0.44, so the final model drops it. Re-fitted from
-    # the model with the delay switched off, the final model (the drift alone) ended 24 % worse on
-    # held-out data than the recalibrated one, the model file the worse of the two. It is re-fitted
-    # also from the ordinary physics as it was before the delay came in
+    # rig-004 (a delay of 5 samples at 3.95 kHz beside a drift) ended with its delay at 0.44, and the
+    # final model, re-fitted from the model with the delay switched off, 24 % worse on held-out data
+    # than the recalibrated one; it is re-fitted also from the ordinary physics as it was before the
+    # weak finding came in. (rig-004's delay is named now: with the drift in, it explains 92 %.)
+    # rig-076, creep in one channel at 402 Hz beside a one-sample delay that is as well that
+    # channel's sampling lag (a candidate, 0.30), takes the same path
+    from piezo_fmu.diagnose import select
     from piezo_fmu.diagnose.run import analyse
 
-    rec, raw = _rig_recording("rig-004")
-    res = analyse(raw).result
+    calls = []
+    real = select._without_weak
+
+    def spy(*a, **k):
+        calls.append(a[-1])
+        return real(*a, **k)
+
+    rec, raw = _rig_recording("rig-076")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(select, "_without_weak", spy)
+        res = analyse(raw).result
+    assert calls, "no finding was turned into a candidate"
+    assert res["final"]["effects"] == ["creep"] == rec.truth["mechanisms"]
     assert [c["effect"] for c in res["candidates"]] == ["time_delay"], res["candidates"]
     before, after = res["baseline"]["rmse"], res["final"]["rmse"]
     for c in before:
-        assert after[c] <= before[c], (c, before[c], after[c])      # measured: 0.91 of it
+        assert after[c] <= before[c], (c, before[c], after[c])      # measured: 0.90 of it
 
 
 def test_a_drift_that_a_third_creep_element_explains_is_not_named():

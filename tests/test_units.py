@@ -8,7 +8,7 @@ import scipy.signal
 
 from piezo_fmu.core.control import pid_step, reference_value
 from piezo_fmu.core.hysteresis import PrandtlIshlinskii
-from piezo_fmu.core.linear import LinearSystem, discretize, expm, is_hurwitz, tf2ss
+from piezo_fmu.core.linear import LinearSystem, balance, discretize, expm, is_hurwitz, tf2ss
 from piezo_fmu.core.plant import Actuator, NoiseSource, Sensor, amp_step
 from piezo_fmu.model import load_model
 from piezo_fmu.system import make_actuator, make_sensor
@@ -19,6 +19,29 @@ def test_expm_matches_scipy(seed):
     rng = np.random.default_rng(seed)
     a = rng.normal(size=(4, 4)) * 10 ** rng.uniform(-3, 1.5)
     np.testing.assert_allclose(expm(a), scipy.linalg.expm(a), rtol=1e-11, atol=1e-13)
+
+
+@pytest.mark.parametrize("f_mode", [69.9, 3000.0, 8640.0])
+def test_a_stiff_chain_discretises_to_its_exact_poles(f_mode):
+    # the mechanics (first mode 15.1 kHz, zeta 0.05) times a further mode (zeta 0.005) at 19.2 kHz:
+    # the companion matrix's coefficients run from 1 to 3e19 s^-4. Unbalanced, scaling and squaring
+    # put a pole at |z| = 1.10 for the 8.64 kHz mode (0.986: an unstable chain, NaN after 0.5 s)
+    # and moved the first mode's 0.7811 to 0.7867 beside a 3 kHz mode.
+    from piezo_fmu.core.plant import mechanics_tf
+
+    m, c, k_a, k_f = 0.021579, 204.74, 176594600.0, 17659460.0
+    h = 1.0 / 19200.0
+    a, b, _, _ = tf2ss(*mechanics_tf(m, c, k_a, k_f, (f_mode, 0.005)))
+    phi, _, _ = discretize(a, b, h, "foh")
+    exact = np.exp(np.roots(np.polymul([m, c, k_a + k_f], [1.0, 2 * 0.005 * 2 * math.pi * f_mode,
+                                                              (2 * math.pi * f_mode) ** 2])) * h)
+    got = np.linalg.eigvals(phi)
+    for z in exact:
+        assert np.min(np.abs(got - z)) < 1e-9 * abs(z)
+    # balancing is a similarity by powers of two: exact, and what it leaves balanced
+    bal, d = balance(a)
+    np.testing.assert_array_equal(bal * d[:, None] / d[None, :], a)
+    assert np.all(np.log2(d) == np.round(np.log2(d)))
 
 
 @pytest.mark.parametrize("method", ["zoh", "foh"])
