@@ -44,6 +44,16 @@ def test_a_stiff_chain_discretises_to_its_exact_poles(f_mode):
     assert np.all(np.log2(d) == np.round(np.log2(d)))
 
 
+@pytest.mark.parametrize("bad", [np.inf, np.nan])
+def test_a_non_finite_matrix_is_an_error_not_a_hang(bad):
+    # balancing scales a row and its column by powers of two until their norms meet: an infinite
+    # entry off the diagonal never meets, and the loop never ended
+    with pytest.raises(ValueError, match="finite"):
+        expm(np.array([[0.0, bad], [1.0, 0.0]]))
+    b, d = balance(np.array([[0.0, bad], [1.0, 0.0]]))        # and the balancing itself returns
+    assert np.all(np.isfinite(d))
+
+
 @pytest.mark.parametrize("method", ["zoh", "foh"])
 def test_discretisation_matches_scipy(method):
     num, den = [2.0, 5.0], [1.0, 3.0, 40.0]

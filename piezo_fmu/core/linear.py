@@ -52,8 +52,8 @@ def balance(a):
         for i in range(n):
             c = float(np.sum(np.abs(b[:, i]))) - abs(b[i, i])
             r = float(np.sum(np.abs(b[i, :]))) - abs(b[i, i])
-            if c == 0.0 or r == 0.0:
-                continue
+            if c == 0.0 or r == 0.0 or not (math.isfinite(c) and math.isfinite(r)):
+                continue            # (a non-finite row or column would never balance)
             total = c + r
             f = 1.0
             while c < r / 2.0:
@@ -78,6 +78,8 @@ def expm(a):
     a = np.asarray(a, dtype=float)
     if a.ndim != 2 or a.shape[0] != a.shape[1]:
         raise ValueError("expm needs a square matrix")
+    if not np.all(np.isfinite(a)):
+        raise ValueError("expm needs a finite matrix")
     a, d = balance(a)
     # exp(D^-1 A D) = D^-1 exp(A) D, so exp(A) = D exp(B) D^-1 (powers of two: exact)
     return _expm_taylor(a) * d[:, None] / d[None, :]

@@ -343,9 +343,9 @@ class Fitter:
             k = 3 if (drift and (ch == "x" or p.pick == "load")) else 1
             c, rhs = _gain_offset(pr, y, basis, bb, by, k)
             sse += self.lam[ch] * max(yy - float(c @ rhs), 0.0)
-        # a model the engine cannot step (a lightly damped mode at the top of the band beside a
-        # first mode above it gave NaN on rig-039) is no candidate: a NaN would also scramble every
-        # sort of the screening's costs (the true 70 Hz mode there was never fitted)
+        # a model the engine cannot step is no candidate: a NaN would also scramble every sort of
+        # the screening's costs (rig-039: the core's unbalanced matrix exponential, since fixed,
+        # made a mode at 0.45 fs unstable, and the true 70 Hz mode was never fitted)
         return sse if math.isfinite(sse) else math.inf
 
     # -- fitting ---------------------------------------------------------------------------------
