@@ -1,7 +1,8 @@
 """Recognition studies: run diagnose blind on concealed recordings and count what it names.
 
 ``python -m piezo_fmu.diagnose.evaluate [--generator synth|rig|both] [--quick] [--jobs 2]
-[--scheduler tcp://HOST:PORT] [--out eval.json] [--markdown table.md]``
+[--scheduler tcp://HOST:PORT] [--only GROUPS] [--cases NAMES] [--ceiling] [--out eval.json]
+[--markdown table.md]``
 
 Two generators:
 
@@ -28,11 +29,14 @@ Reported:
   the best nominal-threshold PI misses it by 3 noise rms); one still below that is *hidden*
   (naming it is no false name, missing it no miss; the synth cases report how many);
 * **false names** - cases with at least one name that is neither true nor hidden;
-* for the controls, how often the structured residual was described as unexplained.
+* for the controls, how often the structured residual was described as unexplained;
+* with ``--ceiling``, for every miss: put into the final model after the diagnosis, does it pass
+  the tests (the selection lost it) or not (why the tests refuse it even when told to look)?
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import itertools
 import json
 import sys
@@ -106,30 +110,72 @@ def _outcome(res):
             "timing": res.get("timing_s"), "error": None}
 
 
-def _diagnose(raw):
+def _ceiling(diag, missed):
+    """Each missed mechanism put into the final model and searched, fitted and tested as a round
+    would (:func:`.select.put_in`): ``passes`` says the recording shows it to the tool's tests (the
+    miss is the selection's: its order, a rival, the confidence, the budget); a failure says why the
+    tests refuse it even when told to look. Run after the diagnosis: the truth never reaches it."""
+    from .decide import confidence
+    from .select import put_in
+
+    sr = diag.search
+    out = {}
+    for name in missed:
+        loop = sr["recal"].report.get("loop", {})
+        if name == "hysteresis_shape" and diag.struct_final.refined and loop.get("refined"):
+            # the finer loop was tried and taken into the recalibration: that was its test
+            out[name] = {"passes": False, "explained": loop.get("explained_share"),
+                         "why": f"taken into the recalibration as an ordinary loop difference (it removed "
+                                f"{loop.get('removed_noise_multiples')} noise rms, explaining "
+                                f"{100 * loop.get('explained_share', 0):.0f} % of the structured residual)"}
+            continue
+        t = put_in(sr["fitter"], name, diag.p_final, diag.struct_final, diag.p_nominal, sr["noise"], sr["cctx"],
+                   sr["recal"])
+        if t is None:
+            out[name] = {"passes": False, "why": "no start proposed for it in this recording"}
+            continue
+        ch = t["cmp"]["channels"].values()
+        out[name] = {"passes": bool(t["passed"]), "why": t["why"] or "",
+                     "explained": max(v["explained"] for v in ch), "dbic": t["cmp"].get("dbic"),
+                     "confidence": confidence(t["cmp"], name) if t["passed"] else 0.0}
+    return out
+
+
+def _diagnose(raw, truth=None):
+    """Diagnose ``raw`` blind; with ``truth`` (the visible true mechanisms, given only for the
+    post-mortem, after the diagnosis is complete) also the ``ceiling`` of each miss."""
     import warnings
 
     from .run import analyse
 
     warnings.simplefilter("ignore")
     t0 = time.perf_counter()
+    seconds = None
     try:
-        out = _outcome(analyse(raw).result)
+        diag = analyse(raw)
+        seconds = time.perf_counter() - t0            # the diagnosis alone
+        out = _outcome(diag.result)
+        if truth is not None:
+            missed = [e for e in truth if e not in out["named"]]
+            out["ceiling"] = _ceiling(diag, missed) if missed else {}
+            out["ceiling_seconds"] = time.perf_counter() - t0 - seconds
     except Exception as exc:  # noqa: BLE001 - a crash is a result too, counted and reported
         out = {"named": [], "confidence": {}, "candidates": {}, "nothing_missing": False, "verdict": "",
                "error": repr(exc)}
-    out["seconds"] = time.perf_counter() - t0
+    out["seconds"] = seconds if seconds is not None else time.perf_counter() - t0
     return out
 
 
-def run_case(spec):
-    """One synth case: generate, diagnose blind, score against the truth."""
+def run_case(spec, ceiling=False):
+    """One synth case: generate, diagnose blind, score against the truth (``ceiling``: and put each
+    miss in afterwards, see :func:`_ceiling`)."""
     from .synth import make_case
 
     case = make_case(spec["seed"], spec["effects"], spec["noise"], spec["kinds"],
                      channels=tuple(spec.get("channels", ("x", "us"))))
     raw = [{"name": f"case{spec['seed']}", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
-    out = _diagnose(raw)
+    visible = [e for e in spec["effects"] if e in EFFECTS and case.truth["visibility"][e] >= VISIBLE]
+    out = _diagnose(raw, visible if ceiling else None)
     out["visibility"] = _visibility(spec, case)
     # a mechanism still below visibility at the end of its range is hidden, as in the rig: naming it
     # is no false name, missing it no miss
@@ -151,13 +197,14 @@ def rig_cases(quick=False):
     return list(rig.cases(quick=quick))
 
 
-def run_rig_case(spec):
-    """One rig case: the rig generates it (its truth stays here), diagnose sees the recording only."""
+def run_rig_case(spec, ceiling=False):
+    """One rig case: the rig generates it (its truth stays here), diagnose sees the recording only
+    (``ceiling``: each miss is put in afterwards, see :func:`_ceiling`)."""
     from .. import rig
 
     rec = rig.generate(spec)
     raw = [{"name": str(rec.truth.get("case_id", "case")), "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
-    out = _diagnose(raw)
+    out = _diagnose(raw, list(rec.truth.get("mechanisms", [])) if ceiling else None)
     t = rec.truth
     params = t.get("params", {})                 # the device's own loop family and its shape feature
     shape = params.get("hysteresis_shape.variant", {}).get("value")
@@ -182,18 +229,26 @@ def _case_line(r, done, n, t0):
     return (f"[{done}/{n} {time.perf_counter() - t0:6.0f} s] {'ok' if ok else 'XX'} {r['case']:<12} {r['group']:<11} "
             f"truth {truth:<40} named {named:<36} {('cand ' + cand) if cand else ''} "
             f"({r['seconds']:.0f} s, {r.get('n_samples', 0)} samples)"
+            + "".join(f" | put in afterwards: {e} {'passes' if c['passes'] else 'refused (' + c['why'][:80] + ')'}"
+                      for e, c in (r.get("ceiling") or {}).items())
             + (f" ERROR {r['error']}" if r.get("error") else ""))
 
 
-def study(generator, quick=False, jobs=None, scheduler=None, only=None, log=None):
-    """Run one generator's cases; returns ``(summary, results)``."""
+def study(generator, quick=False, jobs=None, scheduler=None, only=None, log=None, ceiling=False, cases_=None):
+    """Run one generator's cases; returns ``(summary, results)``. ``only``: case groups to run;
+    ``cases_``: case names to run; ``ceiling``: put each miss in afterwards (:func:`_ceiling`)."""
     from ..parallel import map_as_completed
 
     make, run = GENERATORS[generator]
+    if ceiling:
+        run = functools.partial(run, ceiling=True)
     specs = make(quick)
     if only:
         keep = set(only)
         specs = [c for c in specs if (c["group"] if isinstance(c, dict) else c.group) in keep]
+    if cases_:
+        keep = set(cases_)
+        specs = [c for c in specs if (f"synth-{c['seed']}" if isinstance(c, dict) else c.case_id) in keep]
     t0 = time.perf_counter()
     results = []
     for i, (_, r) in enumerate(map_as_completed(run, specs, scheduler=scheduler, workers=jobs,
@@ -216,15 +271,21 @@ def main(argv=None):
                     help="run on an existing dask.distributed cluster (tcp://HOST:PORT)")
     ap.add_argument("--quick", action="store_true", help="the generators' smaller case sets")
     ap.add_argument("--only", default="", help="comma-separated case groups to run")
+    ap.add_argument("--cases", default="", help="comma-separated case names to run (rig-017, synth-1046, ...)")
+    ap.add_argument("--ceiling", action="store_true",
+                    help="after each diagnosis, put every missed mechanism into the final model and run the "
+                         "tests on it: does the recording show it when the tool is told to look?")
     ap.add_argument("--out", help="write all results as JSON")
     ap.add_argument("--markdown", help="write the tables as markdown")
     a = ap.parse_args(argv)
     gens = ("rig", "synth") if a.generator == "both" else (a.generator,)
     only = [g for g in a.only.split(",") if g] or None
+    names = [c for c in a.cases.split(",") if c] or None
     report, tables = {}, []
     for gen in gens:
         s, results = study(gen, a.quick, a.jobs, a.scheduler, only,
-                           log=lambda line: print(line, file=sys.stderr, flush=True))
+                           log=lambda line: print(line, file=sys.stderr, flush=True), ceiling=a.ceiling,
+                           cases_=names)
         report[gen] = {"summary": s, "results": results}
         tables.append(markdown(s, f"{gen}: {s['cases']} cases"))
     text = "\n\n".join(tables)

@@ -52,6 +52,9 @@ class Diagnosis:
     pred_final: list
     ctx: list                      # per recording input context
     timing: dict = field(default_factory=dict)
+    # what the search ended with, for a post-mortem (select.put_in): the fitter, the recalibration,
+    # the final noise levels and the candidates' context
+    search: dict = field(default_factory=dict, repr=False)
 
 
 # The search budget: seconds of analysis on the reference machine (the project's 2-core VM, idle,
@@ -243,7 +246,8 @@ def _analyse(raw, model, say, max_rounds, time_budget_s):
     timing["total_s"] = time.perf_counter() - t_start
     result["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
     return Diagnosis(recs, model, nominal_model, final_model, p_base, p_final, struct_nom, struct_final,
-                     result, preds_nom, preds_fin, ctxs, timing)
+                     result, preds_nom, preds_fin, ctxs, timing,
+                     {"fitter": fitter, "recal": recal, "noise": noise, "cctx": cctx})
 
 
 def _nominal_structure(p: Params) -> Structure:

@@ -15,6 +15,8 @@ case ``group`` (clean, single, pair, control, one channel), ``named`` (``final.e
 * **confidence calibration**: every reported mechanism (findings and candidates) by confidence
   band, and how often it was right (true or hidden);
 * per mechanism and per group;
+* with ``ceiling`` results (the evaluation's ``--ceiling``): per mechanism, how many misses pass
+  the tests when put into the final model afterwards, and the first test that refused the others;
 * per kind of a mechanism, where the generator says which kind it put in (the rig's loop-shape
   features: a width that depends on the level, a cluster of KP cells, a high-field knee; a result's
   ``variants`` maps a mechanism to its kind). The kinds matter because the catalogue's
@@ -22,6 +24,8 @@ case ``group`` (clean, single, pair, control, one channel), ``named`` (``final.e
   the other two are not.
 """
 from __future__ import annotations
+
+import re
 
 import numpy as np
 
@@ -38,6 +42,14 @@ def _pct(a, b):
 def _effect_row():
     # a miss not counted as a candidate or silent ends in a flagged residual
     return {"true": 0, "recognised": 0, "named_wrongly": 0, "candidate": 0, "silent": 0}
+
+
+def _reason(why):
+    """The first test a refused candidate failed, without its figures (for counting)."""
+    head = (why or "no reason given").split(";")[0].split("(")[0].split("[")[0]
+    head = re.sub(r"(?<![\w.])[-+]?\d[\d.]*(e[-+]?\d+)?( ?(Hz|%|ms|s|um|V)(?!\w))?", "", head)
+    head = re.sub(r"\s+", " ", head).replace(" :", ":").replace(" =", "").strip(" :=<>,.")
+    return head[:70]
 
 
 def summarise(results, catalogue):
@@ -78,6 +90,13 @@ def summarise(results, catalogue):
                 bv["recognised"] += hit
         for e in wrong:
             s["by_effect"].setdefault(e, _effect_row())["named_wrongly"] += 1
+        for e, c in (r.get("ceiling") or {}).items():
+            bc = s.setdefault("ceiling", {}).setdefault(e, {"missed": 0, "passes": 0, "why": {}})
+            bc["missed"] += 1
+            bc["passes"] += bool(c["passes"])
+            if not c["passes"]:
+                reason = _reason(c["why"])
+                bc["why"][reason] = bc["why"].get(reason, 0) + 1
         for e, c in list(r.get("confidence", {}).items()) + list(r.get("candidates", {}).items()):
             reported.append((c, e in truth or e in hidden, e in named))
     for lo, hi in BANDS:
@@ -119,6 +138,14 @@ def markdown(s, title=""):
     if s.get("by_variant"):
         lines += ["", "| mechanism: kind put in | recognised |", "|---|---|"]
         lines += [f"| {k} | {_pct(b['recognised'], b['true'])} |" for k, b in sorted(s["by_variant"].items())]
+    if s.get("ceiling"):
+        lines += ["", "| mechanism | missed | put in afterwards: passes the tests | refused: first failed test (cases) |",
+                  "|---|---|---|---|"]
+        for e in s["catalogue"]:
+            b = s["ceiling"].get(e)
+            if b:
+                why = "; ".join(f"{k} ({v})" for k, v in sorted(b["why"].items(), key=lambda kv: -kv[1]))
+                lines.append(f"| {e} | {b['missed']} | {_pct(b['passes'], b['missed'])} | {why or '-'} |")
     lines += ["", "| case group | cases | exactly right | recognised | cases with a false name | \"nothing is missing\" |",
               "|---|---|---|---|---|---|"]
     for g in GROUPS:
