@@ -10,6 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import pickle
 import shutil
 import sys
 import time
@@ -1348,6 +1349,9 @@ def test_a_miss_put_in_afterwards_says_whether_the_tests_see_it():
     out = _ceiling(diag, ["time_delay", "sensor_leakage"])
     assert out["time_delay"]["passes"] and out["time_delay"]["explained"] > 0.2, out
     assert not out["sensor_leakage"]["passes"] and out["sensor_leakage"]["why"], out
+    # the diagnosis still pickles (the search context stays behind)
+    back = pickle.loads(pickle.dumps(diag))
+    assert back.search == {} and back.result["final"]["effects"] == []
 
 
 def test_the_ceiling_table_counts_what_the_tests_see_and_why_not():

@@ -56,6 +56,11 @@ class Diagnosis:
     # the final noise levels and the candidates' context
     search: dict = field(default_factory=dict, repr=False)
 
+    def __getstate__(self):
+        # the search's fitter holds a lock and its caches: a pickled diagnosis (sent to a dask
+        # worker, saved) is its results without the post-mortem context
+        return {**self.__dict__, "search": {}}
+
 
 # The search budget: seconds of analysis on the reference machine (the project's 2-core VM, idle,
 # one diagnosis at a time) after which no new search is started; outputs come on top (a 20 s,
