@@ -119,9 +119,9 @@ def _ceiling(diag, missed):
     from .select import put_in
 
     sr = diag.search
+    loop = sr["recal"].report.get("loop", {})
     out = {}
     for name in missed:
-        loop = sr["recal"].report.get("loop", {})
         if name == "hysteresis_shape" and diag.struct_final.refined and loop.get("refined"):
             # the finer loop was tried and taken into the recalibration: that was its test
             out[name] = {"passes": False, "explained": loop.get("explained_share"),

@@ -221,6 +221,11 @@ def _starts(fitter, name, current, held, struct, cctx, recal):
         a = swapped_mode(fitter, held, struct, cctx)
         if a is not None:
             alts.append((a, []))
+    # the weights re-solved for each proposed dynamics (held weights fitted to other dynamics would
+    # make a good proposal look bad)
+    for x in [start] + [a for a, _ in alts]:
+        if x is not None and name != "hysteresis_shape":
+            fitter.varpro(x, struct.with_effect(name, 0, len(x.creep)))
     return start, alts
 
 
@@ -270,9 +275,6 @@ def put_in(fitter: Fitter, name, current, struct, p_base, noise, cctx, recal=Non
     start, alts = _starts(fitter, name, current, held, struct, cctx, recal)
     if start is None and not alts:
         return None
-    for x in [start] + [a for a, _ in alts]:
-        if x is not None and name != "hysteresis_shape":
-            fitter.varpro(x, struct.with_effect(name, 0, len(x.creep)))
     sets_cur, _ = residual_sets(fitter, current)
     return _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cctx, recal,
                 lambda msg: None, 0)
@@ -314,12 +316,8 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             start, alts = _starts(fitter, name, current, held, struct, cctx, recal)
             if start is None and not alts:
                 continue
-            # the screening's cost with the weights re-solved for the proposed dynamics (held
-            # weights fitted to other dynamics would make a good proposal look bad)
+            # the screening's cost (the starts' weights re-solved in _starts)
             starts = [x for x in [start] + [a for a, _ in alts] if x is not None]
-            for x in starts:
-                if name != "hysteresis_shape":
-                    fitter.varpro(x, struct.with_effect(name, 0, len(x.creep)))
             q = min(fitter.quick(x, drift=name == "thermal_drift") for x in starts)
             screened.append((q0 - q, name, start, alts))
         screened.sort(key=lambda s: -s[0])
