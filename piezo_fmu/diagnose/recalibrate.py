@@ -37,7 +37,6 @@ from .engine import predict
 from .fit import Fitter, Structure, free_names, get_value, set_value
 from .residuals import ACCEPT, full_residuals, residual_sets, spectral_peaks
 from .stats import compare, noise_level, tau_int
-from .varpro import solve_linear
 
 __all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "channel_uncertainty", "mode_at", "ordinary_names", "recalibrate",
            "uncertainty"]
@@ -569,11 +568,3 @@ def channel_uncertainty(fitter: Fitter, p, names):
     cov = np.linalg.inv(gram) * s2
     return {k: float(f"{math.sqrt(max(cov[i, i], 0.0)):.3g}") for i, k in enumerate(keys)
             if k in ("pi_scale", "S", "off_s", "off_x")}
-
-
-def relinearise(fitter, p, struct):
-    """Re-solve the linear parameters of ``p`` (after its dynamics changed)."""
-    q = p.copy()
-    solve_linear(fitter.recs, fitter.dev, q, fitter.lam, drift_terms=struct.drift_terms,
-                 replays=fitter.replays(q), gn_iter=2)
-    return q
