@@ -205,3 +205,19 @@ def test_a_reader_that_goes_away_ends_the_command_quietly():
     err = proc.stderr.read().decode()
     assert proc.wait() == 141, err
     assert "Traceback" not in err and "BrokenPipe" not in err
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--generator", "rig", "--cases", "rig-999"], ["no rig case named rig-999"]),
+    (["--cases", "rig-017,foo-1"], ["foo-1", "no case of rig or synth"]),
+    (["--generator", "synth", "--cases", "rig-017"], ["rig-017", "no case of synth"]),
+])
+def test_the_evaluation_names_a_case_it_does_not_have(capsys, args, words):
+    # a misspelt case name ran nothing and reported an empty table; now it is bad input
+    from piezo_fmu.diagnose.evaluate import main as evaluate
+
+    with pytest.raises(SystemExit) as ex:
+        evaluate(args + ["--jobs", "0"])
+    assert ex.value.code == 2
+    err = capsys.readouterr().err
+    assert all(w in err for w in words), err

@@ -19,7 +19,7 @@ from .fit import Fitter, free_names, get_value
 from .residuals import ACCEPT, full_residuals
 from .stats import noise_level
 
-__all__ = ["CONFIDENT", "at_bound", "at_noise", "closeness", "confidence", "noise_levels", "own_parameters",
+__all__ = ["CONFIDENT", "at_bound", "closeness", "confidence", "noise_levels", "own_parameters",
            "passes", "removed_rms", "score", "told_apart"]
 
 CONFIDENT = 0.5              # findings at or above this confidence are named; below: candidates
@@ -146,11 +146,3 @@ def score(cmp, name):
     ex = [max(v["explained"], 0.0) for v in cmp["channels"].values()]
     return float(np.mean(ex)) + 1e-3 * cmp["dbic"] / max(1.0, abs(cmp["dbic"]))
 
-
-def at_noise(sets, noise, level=0.3):
-    """True when every channel's held-out residual is within ``level`` x noise of pure noise."""
-    for c, v in sets.items():
-        mse = float(np.mean(v["heldout"] ** 2))
-        if math.sqrt(max(mse - noise[c] ** 2, 0.0)) > level * noise[c]:
-            return False
-    return True

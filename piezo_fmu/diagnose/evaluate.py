@@ -249,6 +249,9 @@ def study(generator, quick=False, jobs=None, scheduler=None, only=None, log=None
     if cases_:
         keep = set(cases_)
         specs = [c for c in specs if (f"synth-{c['seed']}" if isinstance(c, dict) else c.case_id) in keep]
+        unknown = keep - {f"synth-{c['seed']}" if isinstance(c, dict) else c.case_id for c in specs}
+        if unknown:
+            raise ValueError(f"no {generator} case named {', '.join(sorted(unknown))}")
     t0 = time.perf_counter()
     results = []
     for i, (_, r) in enumerate(map_as_completed(run, specs, scheduler=scheduler, workers=jobs,
@@ -282,10 +285,19 @@ def main(argv=None):
     only = [g for g in a.only.split(",") if g] or None
     names = [c for c in a.cases.split(",") if c] or None
     report, tables = {}, []
+    if names:
+        # a case name says its generator (rig-017, synth-1046)
+        stray = [n for n in names if not n.startswith(tuple(f"{g}-" for g in gens))]
+        if stray:
+            ap.error(f"--cases: {', '.join(stray)} is no case of {' or '.join(gens)}")
+        gens = tuple(g for g in gens if any(n.startswith(f"{g}-") for n in names))
     for gen in gens:
-        s, results = study(gen, a.quick, a.jobs, a.scheduler, only,
-                           log=lambda line: print(line, file=sys.stderr, flush=True), ceiling=a.ceiling,
-                           cases_=names)
+        try:
+            s, results = study(gen, a.quick, a.jobs, a.scheduler, only,
+                               log=lambda line: print(line, file=sys.stderr, flush=True), ceiling=a.ceiling,
+                               cases_=[n for n in names if n.startswith(f"{gen}-")] if names else None)
+        except ValueError as exc:
+            ap.error(str(exc))
         report[gen] = {"summary": s, "results": results}
         tables.append(markdown(s, f"{gen}: {s['cases']} cases"))
     text = "\n\n".join(tables)
