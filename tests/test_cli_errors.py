@@ -71,6 +71,44 @@ def test_recordings_must_be_uniform_when_asked(tmp_path):
         read_csv_table(path, required=("time", "u"), one_of=("x",), uniform=True)
 
 
+def test_units_in_the_header_are_converted(tmp_path):
+    """``time [ms]``, ``u (V)``, ``disp [nm]`` read as s, V and um; ``--columns`` names a column with or
+    without its unit; a column given ``--scale`` keeps the user's factor alone."""
+    from piezo_fmu.recording import read_csv_table
+
+    plain, units = tmp_path / "plain.csv", tmp_path / "units.csv"
+    plain.write_text("time,u,x\n0,0,0\n0.001,1.5,250\n0.002,3,500\n")
+    units.write_text("time [ms],u (V),disp [nm]\n0,0,0\n1,1.5,250000\n2,3,500000\n")
+    want = read_csv_table(plain, required=("time", "u"), one_of=("x",), uniform=True)
+    for name in ("disp", "disp [nm]"):
+        got = read_csv_table(units, required=("time", "u"), one_of=("x",), columns={"x": name}, uniform=True)
+        for c in ("time", "u", "x"):
+            assert got[c] == pytest.approx(want[c], rel=1e-12), (name, c)
+        assert got.converted == {"time": ("ms", 1e-3), "x": ("nm", 1e-3)}
+    own = read_csv_table(units, required=("time", "u"), one_of=("x",), columns={"x": "disp"}, scale={"x": 2.0})
+    assert own["x"] == pytest.approx([0, 500000, 1000000])
+    paren = tmp_path / "paren.csv"
+    paren.write_text("time,u,x(t)\n0,0,0\n0.001,1.5,250\n0.002,3,500\n")
+    got = read_csv_table(paren, required=("time", "u"), one_of=("x",), columns={"x": "x(t)"})
+    assert got["x"] == pytest.approx(want["x"]) and got.converted == {}
+    micro = tmp_path / "micro.csv"
+    micro.write_text("time [\u00b5s],u [mV],x [um]\n0,0,0\n1000,1500,250\n")
+    got = read_csv_table(micro, required=("time", "u"), one_of=("x",))
+    assert got["time"] == pytest.approx([0, 1e-3]) and got["u"] == pytest.approx([0, 1.5])
+    assert got["x"] == pytest.approx([0, 250]) and "x" not in got.converted
+
+
+def test_a_unit_that_cannot_be_converted_is_bad_input(tmp_path, capsys):
+    rec = tmp_path / "rec.csv"
+    rec.write_text("time [s],u [V],x [furlong]\n" + "".join(f"{k * 1e-3},{k % 7},{k % 5}\n" for k in range(60)))
+    code, err = run_cli(["diagnose", str(rec), "--out", str(tmp_path / "d"), "--quiet"], capsys)
+    assert code == 2
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and "'furlong' is not a displacement unit" in lines[0], err
+    assert "--scale x=FACTOR" in lines[0] and str(rec) in lines[0]
+    assert not (tmp_path / "d" / "diagnosis.json").exists()
+
+
 @pytest.mark.parametrize("command", [
     ["simulate", "--stop-time", "0.01"],
     ["reproduce", "--out", "{tmp}/r"],

@@ -29,7 +29,8 @@ def add_run_options(p, cosim=False):
                         "device at rest is not kicked)")
     g.add_argument("--input", metavar="FILE.csv",
                    help="reference table for --signal csv: columns time [s] and one of x_ref [um], "
-                        "u_ref [V, nominal stack voltage] or u [V, amplifier command]")
+                        "u_ref [V, nominal stack voltage] or u [V, amplifier command] (another unit in the "
+                        "header, 'x_ref [nm]', is converted)")
     g = p.add_argument_group("run")
     g.add_argument("--stop-time", type=positive("--stop-time"), default=0.3, metavar="S",
                    help="end of the run [s] (default: 0.3, three periods at 10 Hz)")

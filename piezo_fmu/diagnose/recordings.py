@@ -38,7 +38,8 @@ STARVED = 0.1
 
 
 def load_recordings(paths, columns=None, scale=None):
-    """Read recordings: columns time [s], u [V] and x [um] and/or us [V] (after --columns/--scale)."""
+    """Read recordings: columns time [s], u [V] and x [um] and/or us [V] (after --columns/--scale; a
+    unit in a header, ``x [nm]``, is converted, and each entry's ``converted`` says from what)."""
     if not paths:
         raise UserError("give at least one recording (CSV with time, u and x and/or us)")
     out = []
@@ -46,7 +47,8 @@ def load_recordings(paths, columns=None, scale=None):
         tab = read_csv_table(path, required=("time", "u"), one_of=("x", "us"), columns=columns,
                              scale=scale, uniform=True, min_rows=50)
         out.append({"name": str(path), "time": tab["time"], "u": tab["u"],
-                    "x": tab.columns.get("x"), "us": tab.columns.get("us")})
+                    "x": tab.columns.get("x"), "us": tab.columns.get("us"),
+                    "converted": {c: v for c, v in tab.converted.items() if c in ("time", "u", "x", "us")}})
     return out
 
 

@@ -101,7 +101,8 @@ def _analyse(raw, model, say, max_rounds, time_budget_s):
     dev = device_from_model(model)
     p_nom = params_from_model(model, min(r.dt for r in recs))
     struct_nom = _nominal_structure(p_nom)
-    notes = []
+    notes = [f"{r['name']}: {c} read in {u} and converted (x {f:g})"
+             for r in raw for c, (u, f) in r.get("converted", {}).items()]
 
     # input normalisation and rails: the recording's stack-voltage span
     ua_hi = max(float(np.max(r.u)) for r in recs) * dev.k_amp
