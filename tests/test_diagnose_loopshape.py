@@ -1,0 +1,68 @@
+"""How far a fitted loop lies from every classical PI loop (``diagnose.loopshape``)."""
+import numpy as np
+import pytest
+
+from piezo_fmu.core.preisach import grid_cells
+from piezo_fmu.diagnose.engine import device_from_model, params_from_model, predict
+from piezo_fmu.diagnose.fit import Fitter
+from piezo_fmu.diagnose.loopshape import beyond_classical
+from piezo_fmu.diagnose.recordings import make_recordings
+from piezo_fmu.model import load_model
+
+FS = 2000.0                                    # [Hz]
+
+
+def _fitter_and_model():
+    """A 4 s record of nested triangles (minor loops at two levels) and the paper's model."""
+    t = np.arange(int(4 * FS)) / FS
+    tri = lambda f: 2 * np.abs(((t * f) % 1.0) - 0.5)          # 0..1
+    u = np.where(t < 2, 6.0 * tri(1.0), 3.0 + 2.0 * tri(3.0))  # [V] command
+    model = load_model()
+    dev, p = device_from_model(model), params_from_model(model, 1 / FS)
+    recs = make_recordings([{"name": "r", "time": t, "u": u, "x": 0.1 * u, "us": 0.001 * u}])
+    return Fitter(recs, dev, {"x": 1.0, "us": 1.0}), p
+
+
+def _with_cells(p, fitter, weight):
+    """``p`` with a 6-step KP grid whose only weighted cells switch up near the top and back down
+    above the middle (a band of domains switching at fixed voltages, off the loop's centre: full
+    cycles alone would let a classical loop draw a band centred on them), ``weight`` [um] each."""
+    q = p.copy()
+    v = fitter.recs[0].u * fitter.dev.k_amp / q.u_norm
+    up, down, width = grid_cells(min(float(v.min()), 0.0), float(v.max()), 6)
+    band = (up > 0.8 * v.max()) & (down > 0.45 * v.max())
+    q.cells = np.array([up, down, width])
+    q.cell_w = np.where(band, weight, 0.0)
+    return q
+
+
+def test_a_classical_loop_is_zero_and_a_switching_band_is_not():
+    fitter, p = _fitter_and_model()
+    assert np.all(np.asarray(p.weights) >= 0)            # the paper's PI: a classical loop
+    x = predict(fitter.recs[0], fitter.dev, p)["x"]
+    noise = {"x": 0.01 * float(np.ptp(x)), "us": 1.0}
+    clean = beyond_classical(fitter, p, noise)
+    assert clean["x"] < 0.05, clean
+    shaped = _with_cells(p, fitter, 0.02 * float(np.ptp(x)))
+    got = beyond_classical(fitter, shaped, noise)
+    assert got["x"] > 20 * max(clean["x"], 0.05), (clean, got)
+    # in multiples of the noise: ten times the noise, a tenth of the figure
+    quieter = beyond_classical(fitter, shaped, {c: 10 * s for c, s in noise.items()})
+    assert quieter["x"] == pytest.approx(got["x"] / 10, rel=1e-9)
+
+
+def test_a_negative_weight_that_keeps_the_partial_sums_positive_is_not_classical():
+    # the recalibrated PI only keeps its weights' partial sums positive: a negative weight draws a
+    # loop no classical PI draws (the recalibration can bend part of a loop shape in this way)
+    fitter, p = _fitter_and_model()
+    w = np.asarray(p.weights, float).copy()
+    q = p.copy()
+    q.weights = w.copy()
+    q.weights[3] = -0.25 * w.sum()                 # a negative weight at a middle threshold ...
+    q.weights[6] += 0.25 * w.sum() + w[3]           # ... the same stroke from a higher one
+    assert np.all(np.cumsum(q.weights) > 0) and q.weights.sum() == pytest.approx(w.sum())
+    x = predict(fitter.recs[0], fitter.dev, p)["x"]
+    noise = {"x": 0.01 * float(np.ptp(x)), "us": 1.0}
+    classical = beyond_classical(fitter, p, noise)["x"]
+    assert classical < 0.05
+    assert beyond_classical(fitter, q, noise)["x"] > max(0.5, 10 * classical)
