@@ -3,8 +3,8 @@
 :func:`read_csv_table` accepts a header row, ``#`` comment lines and comma-separated numbers. A
 header name may carry its unit in brackets or parentheses (``time [ms]``, ``x (nm)``): the column is
 converted to the unit the tool works in (time s, displacement um, voltages V, force N), see
-:data:`UNITS`. Every problem raises :class:`~piezo_fmu.errors.UserError` with one line naming the file, the row or
-column, and what to do: a missing, empty or binary file, a file that is not comma-separated,
+:data:`UNITS`. Every problem raises :class:`~piezo_fmu.errors.UserError` with one line naming the
+file, the row or column, and what to do: a missing, empty or binary file, a file that is not comma-separated,
 missing or duplicate columns, non-numeric cells, NaN or inf, time that does not increase or is
 not uniformly sampled, and a recording too short to use, a unit the tool cannot convert.
 """

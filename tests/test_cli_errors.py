@@ -85,7 +85,8 @@ def test_units_in_the_header_are_converted(tmp_path):
         for c in ("time", "u", "x"):
             assert got[c] == pytest.approx(want[c], rel=1e-12), (name, c)
         assert got.converted == {"time": ("ms", 1e-3), "x": ("nm", 1e-3)}
-    own = read_csv_table(units, required=("time", "u"), one_of=("x",), columns={"x": "disp"}, scale={"x": 2.0})
+    own = read_csv_table(units, required=("time", "u"), one_of=("x",), columns={"x": "disp"},
+                         scale={"x": 2.0})
     assert own["x"] == pytest.approx([0, 500000, 1000000])
     paren = tmp_path / "paren.csv"
     paren.write_text("time,u,x(t)\n0,0,0\n0.001,1.5,250\n0.002,3,500\n")
@@ -100,7 +101,8 @@ def test_units_in_the_header_are_converted(tmp_path):
 
 def test_a_unit_that_cannot_be_converted_is_bad_input(tmp_path, capsys):
     rec = tmp_path / "rec.csv"
-    rec.write_text("time [s],u [V],x [furlong]\n" + "".join(f"{k * 1e-3},{k % 7},{k % 5}\n" for k in range(60)))
+    rows = "".join(f"{k * 1e-3},{k % 7},{k % 5}\n" for k in range(60))
+    rec.write_text("time [s],u [V],x [furlong]\n" + rows)
     code, err = run_cli(["diagnose", str(rec), "--out", str(tmp_path / "d"), "--quiet"], capsys)
     assert code == 2
     lines = [line for line in err.splitlines() if line.strip()]

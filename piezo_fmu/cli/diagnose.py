@@ -65,8 +65,8 @@ def register(sub):
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("recordings", nargs="+", metavar="REC.csv",
                    help="CSV with a header row (# comments allowed): time [s] (uniform), u [V] (amplifier "
-                        "command) and x [um] and/or us [V]; a header may name another unit, converted on reading: "
-                        "'time [ms]', 'x (nm)', 'u [mV]'")
+                        "command) and x [um] and/or us [V]; a header may name another unit, converted on "
+                        "reading: 'time [ms]', 'x (nm)', 'u [mV]'")
     p.add_argument("--model", metavar="FILE.toml", default=None,
                    help="nominal model (default: the paper's, shipped with piezo-fmu)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")

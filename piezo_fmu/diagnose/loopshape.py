@@ -9,9 +9,9 @@ grid that fits it.
 The recalibrated PI keeps only the partial sums of its weights positive (an invertible model that
 may load concavely), so a weight may go negative and the recalibration itself can bend part of a
 shape in; the improvement a finer loop then adds (``select.SHAPE_REMOVED``) counts only the rest
-(rig-078: a band of switching domains 3.6 noise rms from the best classical loop, a finer loop
-removing 1.05 beyond the recalibrated one). :func:`beyond_classical` measures the shape itself:
-the stroke of a fitted loop, refitted by ``CLASSICAL_OPERATORS`` play operators with non-negative
+(rig-078: a band of switching domains 4.0 noise rms from the best classical loop of the device's
+true stroke, a finer loop removing 1.05 beyond the recalibrated one). :func:`beyond_classical`
+measures the shape itself: the stroke of a fitted loop, refitted by ``CLASSICAL_OPERATORS`` play operators with non-negative
 weights on threshold grids of several spacings and voltage scales, and what is left, at each
 channel's static gain, in multiples of that channel's noise. What the stack remembers from before
 the record is not known (the fitted loop's KP cells may draw any start): the classical operators
@@ -31,7 +31,8 @@ from .engine import operators, predict, stroke
 from .fit import Fitter
 from .model_io import Params
 
-__all__ = ["CLASSICAL_OPERATORS", "CLASSICAL_ROWS", "CLASSICAL_SCALES", "CLASSICAL_SPACINGS", "beyond_classical"]
+__all__ = ["CLASSICAL_OPERATORS", "CLASSICAL_ROWS", "CLASSICAL_SCALES", "CLASSICAL_SPACINGS",
+           "beyond_classical"]
 
 CLASSICAL_OPERATORS = 20                            # play operators of the classical loops tried
 CLASSICAL_SPACINGS = (1.0, 2.0)                     # thresholds U (k / (n - 1))^s, k = 0 .. n - 1

@@ -406,9 +406,9 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 sets_cur, _ = residual_sets(fitter, current)
                 continue
             if removed < SHAPE_REMOVED:
-                step(f"round {rnd + 1}: the finer loop removes {removed:.2f} x the noise beyond the recalibrated "
-                     f"one, and the loop it draws lies {beyond:.2f} x the noise from the best classical PI loop: "
-                     "a loop shape (the recalibrated PI had bent part of it in)")
+                step(f"round {rnd + 1}: the finer loop removes {removed:.2f} x the noise beyond the "
+                     f"recalibrated one, and the loop it draws lies {beyond:.2f} x the noise from the best "
+                     "classical PI loop: a loop shape (the recalibrated PI had bent part of it in)")
         # the strongest competitor on the same residual (a failed one counts half)
         b_score = score(best["cmp"], best["name"])
         # (a finer loop's cells bend to much of any residual: they rival a loop shape, not physics
