@@ -105,8 +105,9 @@ def ordinary_names(fitter: Fitter, rc: Recalibration, struct: Structure):
 
 def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
     """Try every ordinary item not identified yet (first mode and pick-off, amplifier order,
-    sampling lags, the thresholds' voltage scale) on ``rc.params`` with the mechanisms of ``struct``
-    in; update ``rc`` in place and return whether anything changed. The selection calls it again after each finding: a mechanism
+    sampling lags; the thresholds' voltage scale also when identified with other mechanisms in) on
+    ``rc.params`` with the mechanisms of ``struct`` in; update ``rc`` in place and return whether
+    anything changed. The selection calls it again after each finding: a mechanism
     that dominated the residual may have hidden an ordinary item."""
     sat = ["y_sat"] if struct.saturation else []
     changed = False
@@ -124,11 +125,13 @@ def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
         step("recalibrating the channels' sampling lags")
         changed |= _lags(fitter, rc, struct, sat)
     scale = rc.report.get("threshold_scale", {})
-    if not scale.get("identified") and scale.get("bic_gain", 0.0) > 0.0 and not fitter.out_of_time() \
+    if (scale.get("identified") or scale.get("bic_gain", 0.0) > 0.0) and not fitter.out_of_time() \
             and rc.scale_tried_with != struct.effects:
         # another scale fitted better but not clearly: a mechanism that dominated the residual (a
         # drift: few effective samples) may have hidden it (rig-161: BIC gain 2.7 before the drift
-        # was in, a finer loop named after it)
+        # was in, a finer loop named after it); or the scale identified then was pulled by what was
+        # still missing (synth-1055: creep and a 306 Hz mode took it from 30 to 41.5 V; with both
+        # in, 30 V fits to the noise and 41.5 V leaves 5 x the noise)
         step("recalibrating the voltage scale of the hysteresis thresholds")
         changed |= _threshold_scale(fitter, rc, struct, sat)
     if changed:
@@ -369,8 +372,26 @@ def _threshold_scale(fitter, rc, struct, sat):
     not a missing loop shape. A short fit from a few starting scales (weights, saturation and lag
     re-fitted at each, after a screening with the weights re-solved), then a joint fit from the
     best; kept when it beats the start clearly and does not settle at the end of its range."""
-    p = rc.params
     rc.scale_tried_with = struct.effects
+    before = rc.report.get("threshold_scale", {})
+    if before.get("identified"):
+        # asked again with mechanisms in: a scale no better keeps the one identified before
+        ok = _threshold_scale_fit(fitter, rc, struct, sat)
+        if not ok:
+            rc.report["threshold_scale"] = before
+        else:
+            rc.report["threshold_scale"]["start_V"] = before["start_V"]
+            rc.notes = [n for n in rc.notes if not n.startswith("the hysteresis thresholds sit at")]
+            rc.notes.append(f"the hysteresis thresholds sit at {rc.params.u_norm / before['start_V']:.3g} x "
+                            f"the starting voltage scale (u_norm {rc.params.u_norm:.4g} V instead of "
+                            f"{before['start_V']:.4g} V)")
+        return ok
+    return _threshold_scale_fit(fitter, rc, struct, sat)
+
+
+def _threshold_scale_fit(fitter, rc, struct, sat):
+    """One search of the scale from ``rc.params`` (see :func:`_threshold_scale`)."""
+    p = rc.params
     if "u_norm" not in fitter.limits:
         rc.report["threshold_scale"] = {"identified": False, "why": "no range given"}
         return False

@@ -13,13 +13,13 @@ import math
 import numpy as np
 
 from . import locate
-from .catalogue import CATALOGUE, describe_parameters
+from .catalogue import CATALOGUE
 from .engine import model_from_params, predict
 from .recordings import HELDOUT_EVERY
 from .select import ACCEPT, CONFIDENT
 from .stats import improvement_band, input_xcorr, tau_int, whiteness
 
-__all__ = ["assemble", "file_predictions", "localise", "nrmse", "rmse_as_given", "to_model"]
+__all__ = ["assemble", "describe_parameters", "file_predictions", "localise", "nrmse", "rmse_as_given", "to_model"]
 
 
 def rmse_as_given(recs, dev, p):
@@ -469,3 +469,28 @@ def recal_summary(p, dev, dt, recal):
                  "refined": False, **loop},
     }
     return out
+
+
+def describe_parameters(name, p, dev, dt):
+    """The fitted parameters of a mechanism in model-file units."""
+    if name == "creep":
+        return {"gains": [float(f"{g:.5g}") for g, _ in p.creep],
+                "time_constants_s": [float(f"{t:.5g}") for _, t in p.creep]}
+    if name == "sensor_leakage":
+        return {"tau_leak_s": float(f"{p.tau_leak:.5g}")}
+    if name == "amplifier_current_limit":
+        return {"I_max_A": float(f"{p.slew * dev.C_a:.5g}"), "slew_V_per_s": float(f"{p.slew:.5g}")}
+    if name == "time_delay":
+        return {"delay_s": float(f"{round(p.delay / dt) * dt:.6g}"), "samples": int(round(p.delay / dt))}
+    if name == "extra_resonance":
+        return {"f_n_Hz": float(f"{p.res[0]:.5g}"), "zeta": float(f"{p.res[1]:.4g}"), "position": p.res_at}
+    if name == "thermal_drift":
+        return {"rate_per_s": float(f"{p.rate:.5g}"), "curvature_per_s2": float(f"{p.curv:.5g}")}
+    if name == "hysteresis_shape":
+        out = {"operators": len(p.thresholds), "thresholds": [float(f"{v:.5g}") for v in p.thresholds]}
+        if p.n_cells:
+            out["kp_cells"] = p.n_cells
+            out["kp_grid_V"] = [float(f"{float(p.cells[1].min()) * p.u_norm:.4g}"),
+                                float(f"{float(p.cells[0].max()) * p.u_norm:.4g}")]
+        return out
+    return {}
