@@ -1037,7 +1037,7 @@ def test_a_delay_taken_for_both_lag_stages_is_searched_with_both(monkeypatch):
         assert scaled["lag"] < held["lag"]          # the second stage gave up what the delay takes
     held, first = pairs[0]
     # from the recalibration's two stages (1.5 + 2.2 ms): clearly better, most of the lag gone
-    assert first["cost"] < 0.9 * held["cost"], (held, first)           # measured: 0.87
+    assert first["cost"] < 0.9 * held["cost"], (held, first)           # measured: 0.86
     assert first["lag"] < first["lag_before"] - 0.5 * delay, first     # measured: 3.96 -> 0.27 ms
 
 

@@ -299,17 +299,6 @@ def _delay_search(fitter: Fitter, p, struct, dt, both):
         q, c = _lag_profile(fitter, p, struct, nd * dt, best.tau, both)
         if c < best_c:
             best, best_c = q, c
-    f1, z1 = p.mode(fitter.dev)
-    if not both and ((p.res is not None and p.res[1] < MODE_LIGHT)
-                     or ("mech_f" in fitter.ordinary and z1 < MODE_LIGHT and f1 < 0.5 * fitter.fs)):
-        # lags a factor 2 apart and a parabola are coarse where the cost is sharp in the lag: beside a
-        # ringing mode (synth-1067: 1.46 ms for the 1.57 that fits by a 248 Hz mode, and the delay
-        # screened worse than none) the best delay's lag is searched finely. (Everywhere, it made a
-        # false delay on rig-113, whose 487 Hz first mode at 0.15 the recalibration had not found.)
-        q, c = fitter.fit_scalar(best, struct, "tau", quick=True, bounds=(best.tau / 1.4, best.tau * 1.4),
-                                 xatol=0.01)
-        if c < best_c:
-            best, best_c = q, c
     return best, best_c
 
 

@@ -19,7 +19,8 @@ from .recordings import HELDOUT_EVERY
 from .select import ACCEPT, CONFIDENT
 from .stats import improvement_band, input_xcorr, tau_int, whiteness
 
-__all__ = ["assemble", "describe_parameters", "file_predictions", "localise", "nrmse", "rmse_as_given", "to_model"]
+__all__ = ["assemble", "describe_parameters", "file_predictions", "localise", "nrmse", "rmse_as_given",
+           "to_model"]
 
 
 def rmse_as_given(recs, dev, p):

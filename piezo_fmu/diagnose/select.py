@@ -64,8 +64,8 @@ LOOP_HELDOUT_BETA = (0.8, 1.25)   # a finer loop the BIC refuses: the held-out s
 LOOP_HELDOUT_Z = 5.0              # ...at this many standard errors (then an ordinary refinement)
 
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
-SAG_DRAWN = 0.25                  # a recalibrated sag below this share of the nominal one: drawn in
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
+SAG_DRAWN = 0.25     # a recalibrated sag below this share of the nominal one was drawn in (SLOW: both starts)
 
 
 def sampling_lag_rival(fitter, p):
