@@ -363,6 +363,7 @@ def _history(fitter, rc, struct, sat):
 
 THRESHOLD_SCALES = (0.3, 0.45, 0.7, 1.4)     # starting points of the threshold scale's fit (x the start)
 THRESHOLD_FITTED = 2                          # of them, the best screened are fitted
+SCALE_NOTE = "the hysteresis thresholds sit at"   # the note a scale found writes (one at a time)
 
 
 def _threshold_scale(fitter, rc, struct, sat):
@@ -374,23 +375,19 @@ def _threshold_scale(fitter, rc, struct, sat):
     best; kept when it beats the start clearly and does not settle at the end of its range."""
     rc.scale_tried_with = struct.effects
     before = rc.report.get("threshold_scale", {})
-    if before.get("identified"):
-        # asked again with mechanisms in: a scale no better keeps the one identified before
-        ok = _threshold_scale_fit(fitter, rc, struct, sat)
-        if not ok:
-            rc.report["threshold_scale"] = before
-        else:
-            rc.report["threshold_scale"]["start_V"] = before["start_V"]
-            rc.notes = [n for n in rc.notes if not n.startswith("the hysteresis thresholds sit at")]
-            rc.notes.append(f"the hysteresis thresholds sit at {rc.params.u_norm / before['start_V']:.3g} x "
-                            f"the starting voltage scale (u_norm {rc.params.u_norm:.4g} V instead of "
-                            f"{before['start_V']:.4g} V)")
-        return ok
-    return _threshold_scale_fit(fitter, rc, struct, sat)
+    if not before.get("identified"):
+        return _threshold_scale_fit(fitter, rc, struct, sat, rc.params.u_norm)
+    # asked again with mechanisms in: measured from the first start; a scale no better keeps the
+    # one identified before
+    if not _threshold_scale_fit(fitter, rc, struct, sat, before["start_V"]):
+        rc.report["threshold_scale"] = before
+        return False
+    return True
 
 
-def _threshold_scale_fit(fitter, rc, struct, sat):
-    """One search of the scale from ``rc.params`` (see :func:`_threshold_scale`)."""
+def _threshold_scale_fit(fitter, rc, struct, sat, start):
+    """One search of the scale from ``rc.params`` (see :func:`_threshold_scale`); ``start`` [V] is
+    the scale the report and the note measure from."""
     p = rc.params
     if "u_norm" not in fitter.limits:
         rc.report["threshold_scale"] = {"identified": False, "why": "no range given"}
@@ -415,10 +412,11 @@ def _threshold_scale_fit(fitter, rc, struct, sat):
     if gain > ACCEPT["dbic"] and not edge:
         rc.report["threshold_scale"] = {"identified": True, "bic_gain": round(gain, 1),
                                         "u_norm_V": float(f"{fr.params.u_norm:.6g}"),
-                                        "start_V": float(f"{p.u_norm:.6g}")}
+                                        "start_V": float(f"{start:.6g}")}
         rc.params = fr.params
-        rc.notes.append(f"the hysteresis thresholds sit at {fr.params.u_norm / p.u_norm:.3g} x the starting "
-                        f"voltage scale (u_norm {fr.params.u_norm:.4g} V instead of {p.u_norm:.4g} V)")
+        rc.notes = [n for n in rc.notes if not n.startswith(SCALE_NOTE)]
+        rc.notes.append(f"{SCALE_NOTE} {fr.params.u_norm / start:.3g} x the starting voltage scale "
+                        f"(u_norm {fr.params.u_norm:.4g} V instead of {start:.4g} V)")
         return True
     rc.report["threshold_scale"] = {"identified": False, "why": "at the end of its search range" if edge
                                     else f"not clearly better (BIC gain {gain:.1f})",
