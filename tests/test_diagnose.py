@@ -1125,8 +1125,8 @@ def test_the_holds_take_all_of_a_true_drift(monkeypatch):
     seen = []
     orig = taken_in_holds
 
-    def spy(fitter, p0, p1, ch):
-        out = orig(fitter, p0, p1, ch)
+    def spy(fitter, p0, p1, ch, **kw):
+        out = orig(fitter, p0, p1, ch, **kw)
         seen.append(out)
         return out
 
@@ -1137,6 +1137,35 @@ def test_the_holds_take_all_of_a_true_drift(monkeypatch):
     assert seen and all(s is not None for s in seen)
     beta, strength = seen[-1]
     assert strength > 10 and beta == pytest.approx(1.0, abs=0.2)
+
+
+def test_the_holds_judge_a_drift_by_its_own_change(monkeypatch):
+    # rig-060: the drift's fit also switched the pick-off, which moved the holds the other way; the
+    # drift's own trend was taken at 0.86 there, the whole change at 0.06 - and a true drift was
+    # rejected as "a trend of the moving part". Here: data that hold a drift of 0.3 um/s, a change
+    # that adds it and a 1.5 s wobble the data do not have
+    from types import SimpleNamespace as NS
+
+    import piezo_fmu.diagnose.residuals as resid
+
+    dt, n = 1e-3, 3000
+    t = np.arange(n) * dt
+    u = np.concatenate([np.sin(np.arange(600) / 30.0), np.full(n - 600, 0.5)])
+    rng = np.random.default_rng(3)
+    before = np.sin(t * 7.0)
+    drift, wobble = 0.3 * t, 0.5 * np.sin(2 * np.pi * t / 1.5)
+    rec = NS(u=u, dt=dt, t=t, x=before + drift + 0.01 * rng.standard_normal(n), us=None)
+    fitter = NS(recs=[rec], dev=None, noise={"x": 0.01})
+    p0, p1 = NS(pred=before, trend=0.0 * t), NS(pred=before + drift + wobble, trend=drift)
+    monkeypatch.setattr(resid, "predict", lambda r, dev, p: {"x": p.pred})
+    beta_all, _ = resid.taken_in_holds(fitter, p0, p1, "x")
+    beta, strength = resid.taken_in_holds(fitter, p0, p1, "x", own=lambda r, p: p.trend)
+    assert beta_all < 0.6                   # the whole change: the wobble drags it down
+    assert beta == pytest.approx(1.0, abs=0.03) and strength > 100
+    # with no other change the two agree
+    p2 = NS(pred=before + drift, trend=drift)
+    assert resid.taken_in_holds(fitter, p0, p2, "x", own=lambda r, p: p.trend) == pytest.approx(
+        resid.taken_in_holds(fitter, p0, p2, "x"), rel=1e-9)
 
 
 def test_a_whole_sample_delay_of_one_channel_is_also_its_sampling_lag():

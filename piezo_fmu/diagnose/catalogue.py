@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.preisach import grid_cells
-from .engine import amplifier_output, chain, lowpass, predict
+from .engine import amplifier_output, chain, lowpass, predict, trend
 from .fit import Fitter, Structure
 from .residuals import taken_in_holds
 
@@ -561,7 +561,7 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
             return False, (f"the same slow trend is in the sensor voltage ({100 * share:.0f} % of what a "
                            "trend of the force would give): it moves the force, so it is not a drift of "
                            "the displacement reading")
-        held = taken_in_holds(fitter, p_before, p_after, "x")
+        held = taken_in_holds(fitter, p_before, p_after, "x", own=lambda r, q: trend(r.t, q))
         if held is not None and held[1] >= DRIFT_HOLD_STRENGTH and held[0] < DRIFT_HOLD_TAKEN:
             return False, (f"where the command holds still (a drift goes on there as in motion) the data "
                            f"take {held[0]:.2f} of its correction (test strength {held[1]:.0f}): a trend "

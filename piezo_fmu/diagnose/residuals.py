@@ -108,13 +108,19 @@ def hold_runs(u, dt):
             if (b - a) * dt >= HOLD_MIN_S and b - a - skip > 10]
 
 
-def taken_in_holds(fitter: Fitter, p_before, p_after, ch):
+def taken_in_holds(fitter: Fitter, p_before, p_after, ch, own=None):
     """How much of the change from ``p_before`` to ``p_after`` in channel ``ch`` the residual of
     ``p_before`` takes within the command's holds, each hold's mean removed (so only the motion
     during a hold counts): ``(beta, strength)``, beta the regression coefficient (1: all of it, 0:
     none), strength the rms of the change within holds over the noise times the square root of
-    their samples (the z a beta of 1 would have); ``None`` without holds or without the channel."""
-    num = den = 0.0
+    their samples (the z a beta of 1 would have); ``None`` without holds or without the channel.
+
+    ``own(rec, p)``: the mechanism's own term in ``ch`` (a drift's trend). Then beta is that term's
+    change, fitted beside what the other parameters' refit changed (rig-060: the drift's own change
+    taken at 0.86 in the holds, the pick-off switched beside it at -1.1: 0.06 in all), and the
+    strength is the part of it the other change cannot stand in for."""
+    g = np.zeros((2, 2))
+    v = np.zeros(2)
     for r in fitter.recs:
         y = getattr(r, ch)
         if y is None:
@@ -124,12 +130,19 @@ def taken_in_holds(fitter: Fitter, p_before, p_after, ch):
             continue
         before = predict(r, fitter.dev, p_before)[ch]
         change = predict(r, fitter.dev, p_after)[ch] - before
+        mine = change if own is None else own(r, p_after) - own(r, p_before)
         for a, b in runs:
             e = y[a:b] - before[a:b]
-            d = change[a:b] - np.mean(change[a:b])
-            num += float((e - np.mean(e)) @ d)
-            den += float(d @ d)
+            cols = [mine[a:b], change[a:b] - mine[a:b]]
+            cols = [c - np.mean(c) for c in cols]
+            g += [[ci @ cj for cj in cols] for ci in cols]
+            v += [float((e - np.mean(e)) @ c) for c in cols]
     noise = fitter.noise.get(ch, 0.0)
-    if den <= 0.0 or noise <= 0.0:
+    if g[0, 0] <= 0.0 or noise <= 0.0:
         return None
-    return num / den, math.sqrt(den) / noise
+    if g[1, 1] <= 1e-12 * g[0, 0]:
+        return float(v[0] / g[0, 0]), math.sqrt(g[0, 0]) / noise
+    free = g[0, 0] - g[0, 1] ** 2 / g[1, 1]       # the own change's part the other cannot draw
+    if free <= 1e-6 * g[0, 0]:
+        return None
+    return float(np.linalg.solve(g, v)[0]), math.sqrt(free) / noise
