@@ -65,6 +65,13 @@ LOOP_HELDOUT_Z = 5.0              # ...at this many standard errors (then an ord
 
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
+# the ordinary items a fast mechanism is screened also without alone (besides without all of them):
+# a delay beside a true first mode, its time taken by a second lag stage (rig-147: 0.71 ms for the
+# 0.60 ms delay beside the 841 Hz mode; without both the mode's ringing was lost and the delay
+# screened worse than the recalibrated model). Not the sampling lags alone: a delay moves both
+# channels, their lags' difference is another thing (without them alone a delay of 0.53 ms was
+# named on rig-149 in the place of a 0.4 ms second stage and the sensor's one-sample lag)
+ALONE = {"time_delay": ("order",)}
 SAG_DRAWN = 0.25     # a recalibrated sag below this share of the nominal one was drawn in (SLOW: both starts)
 
 
@@ -126,11 +133,13 @@ def refine_delay(fitter, p, struct, reach=3):
     return best
 
 
-def _refine(fitter, tried_loop, struct, p_base, recal, removed, explained):
+def _refine(fitter, tried_loop, struct, p_base, recal, removed, explained, noise):
     """Take the finer loop of ``tried_loop`` into the recalibration (an ordinary loop difference,
-    not named); returns the refined structure and the model re-fitted with it."""
+    not named); returns the refined structure and the model re-fitted with it. ``noise`` is taken
+    again from that model, as after a finding (rig-147: the loop's misfit had passed for noise)."""
     struct = struct.refine(shape_size(tried_loop["fit"].params, p_base.thresholds))
     current = fitter.fit(tried_loop["fit"].params, struct, max_nfev=10).params
+    noise.update(noise_levels(fitter, current)[0])
     if recal is not None:
         recal.report["loop"] = {"operators": len(current.thresholds), "kp_cells": current.n_cells,
                                 "refined": True, "removed_noise_multiples": round(removed, 2),
@@ -212,13 +221,15 @@ def _starts(fitter, name, current, held, struct, cctx, recal):
         # a fast mechanism may be what the fast ordinary items stand in for: screen it also
         # from the model without them (both are fitted; the better by BIC is kept)
         items = present(fitter, recal)
-        if items:
+        # without all of them and (see ALONE) without some alone
+        alone = [[it] for it in ALONE.get(name, ()) if it in items] if len(items) > 1 else []
+        for drop_set in ([items] + alone) if items else []:
             base = held
-            for it in items:
+            for it in drop_set:
                 base = without(base, it, recal)
             a = propose(name, fitter, base, struct, cctx)
             if a is not None:
-                alts.append((a, items))
+                alts.append((a, list(drop_set)))
     if (name == "thermal_drift" and start is not None and start.pick == "stack"
             and "us" in cctx["channels"] and "mech_f" not in fitter.ordinary):
         # without a visible first mode the pick-off is open: a sensor on the load spring
@@ -383,7 +394,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                      "(not named)")
                 struct, current = _refine(fitter, loop, struct, p_base, recal,
                                           max(removed_rms(v) for v in ch.values()),
-                                          max(v["explained"] for v in ch.values()))
+                                          max(v["explained"] for v in ch.values()), noise)
                 sets_cur, _ = residual_sets(fitter, current)
                 continue
             rejected += [{"effect": t["name"], "why": t["why"], **({"at_bound": t["bounds"]} if t["bounds"] else {})}
@@ -413,7 +424,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 far = f"; its loop {beyond:.2f} x the noise from the best classical PI loop" if beyond else ""
                 step(f"round {rnd + 1}: the finer loop explains {100 * explained:.0f} % ({removed:.2f} x the "
                      f"noise{far}): an ordinary loop difference, taken into the recalibration (not named)")
-                struct, current = _refine(fitter, best, struct, p_base, recal, removed, explained)
+                struct, current = _refine(fitter, best, struct, p_base, recal, removed, explained, noise)
                 sets_cur, _ = residual_sets(fitter, current)
                 continue
             if removed < SHAPE_REMOVED:
