@@ -1240,6 +1240,27 @@ def test_a_delay_beside_a_true_first_mode_is_found_without_the_second_lag_stage(
     assert analyse(raw).result["final"]["effects"] == []
 
 
+def test_a_finer_loop_on_one_channel_only_is_no_loop_shape(monkeypatch):
+    # rig-136: a 160 Hz mode and sensor leakage, the amplifier's two stages (0.9 + 0.4 ms)
+    # recalibrated as one lag of 5.0 ms. Once a cached stroke made the screening cost less work, a
+    # third round fitted a finer loop that explains 80 % of the displacement's structured residual
+    # (removing 1.01 noise rms, its loop 3.04 noise rms from every classical PI loop) and 22 % of the
+    # sensor's. A loop shape is the stroke's and shows on every channel that sees the stroke: on
+    # the weaker evidence (under 3 noise rms removed) the loop must explain 70 % on each
+    from piezo_fmu.diagnose import select
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-136")
+    assert sorted(rec.truth["mechanisms"]) == ["extra_resonance", "sensor_leakage"]
+    steps = []
+    res = analyse(raw, say=steps.append).result
+    assert res["final"]["effects"] == ["extra_resonance", "sensor_leakage"], (res["candidates"], res["rejected"])
+    assert any("22 % on its weakest channel" in m and "not named" in m for m in steps), steps
+    # judged on its best channel alone (the rule before): a false loop shape
+    monkeypatch.setattr(select, "SHAPE_EXPLAINED_EACH", 0.0)
+    assert "hysteresis_shape" in analyse(raw).result["final"]["effects"]
+
+
 def test_a_lone_fast_creep_element_is_not_called_creep():
     # rig-140: a clean Bouc-Wen device driven by multisines up to 195 Hz. A single creep element of
     # 3.2 ms (gain 0.15) was named at confidence 0.80: the loop's different gain for the small fast

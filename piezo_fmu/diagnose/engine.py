@@ -451,13 +451,17 @@ def stroke(rec: Recording, dev: Device, p: Params, rp: Replay | None = None):
     return saturate(hx, p.y_sat)
 
 
-def predict(rec: Recording, dev: Device, p: Params, rp: Replay | None = None, direct=False) -> dict:
+def predict(rec: Recording, dev: Device, p: Params, rp: Replay | None = None, direct=False,
+            hx: np.ndarray | None = None) -> dict:
     """Noise-free ``x`` [um] and ``us`` [V] of the model at every sample of ``rec``.
 
     ``direct``: compute the weighted operator sum in one compiled pass (no operator matrix),
-    for evaluations that do not need the operators themselves.
+    for evaluations that do not need the operators themselves. ``hx``: the hysteretic stroke
+    [um] of ``p`` already computed (:func:`stroke`), only the linear chain after it is run.
     """
-    if direct and rp is None:
+    if hx is not None:
+        pass
+    elif direct and rp is None:
         hx = stroke(rec, dev, p)
     else:
         rp = rp or replay(rec, dev, p)
