@@ -459,11 +459,9 @@ def predict(rec: Recording, dev: Device, p: Params, rp: Replay | None = None, di
     for evaluations that do not need the operators themselves. ``hx``: the hysteretic stroke
     [um] of ``p`` already computed (:func:`stroke`), only the linear chain after it is run.
     """
-    if hx is not None:
-        pass
-    elif direct and rp is None:
+    if hx is None and direct and rp is None:
         hx = stroke(rec, dev, p)
-    else:
+    elif hx is None:
         rp = rp or replay(rec, dev, p)
         hx = stroke(rec, dev, p, rp)
     force = chain(hx, "us", dev, p, rec.dt)
