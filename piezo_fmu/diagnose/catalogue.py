@@ -277,7 +277,7 @@ def _supported(fitter: Fitter, q, n):
 
     A cell switched on at the record's one peak and off at thresholds crossed only inside the
     held-out block after it is a few rows to the fit and a whole block to the validation: its
-    weight, fitted to those few, draws a step there (rig-072: 0.94 um off in that block, 0.02
+    weight, fitted to those few, draws a step there (rig-072: 0.94 um off in that block, 0.01-0.05
     elsewhere, and the finer loop that would have taken in an ordinary loop difference failed).
     Only the command decides this, not the held-out response. A state counts as switched where
     it differs from its median over the training rows; a cell switched on fewer than
