@@ -224,19 +224,13 @@ MODE_LIGHT = 0.15           # a mode's damping ratio up to which it rings (above
 # this share of its correction when the holds can tell (strength: the z a full share would have).
 # Rig survey, 2026-11-26: named true drifts 0.57-1.5 (rig-004, 012, 035, 059, 085, 089, 090, 098,
 # 103, 124, 155, 161-182), false drift candidates -0.06-0.10 (clean rig-050's Bouc-Wen loop over
-# a slow multisine; rig-105, 144); synth drifts 1.00-1.06. Strength from 2 (2026-11-27: rig-050's
-# loop taken in as an ordinary refinement, its trend's test fell to strength 2.7 with -0.01 taken;
-# no other of 72 rig cases with a drift, a drift candidate or nothing to find lies at 1.5-3)
+# a slow multisine; rig-105, 144); synth drifts 1.00-1.06. From strength 2: rig-050's trend beside
+# its refined loop, -0.01 taken at 2.7 (no other of 72 rig drift or clean cases lies at 1.5-3)
 DRIFT_HOLD_TAKEN = 0.3
 DRIFT_HOLD_STRENGTH = 2.0
 SHAPE_GRID = 6        # steps of the KP cells' Preisach grid over the recorded stack voltages (21 cells)
 SHAPE_GRID_FINE = 8   # the finer grid a named shape may ask for next (36 cells)
-
-
-# a KP cell is kept when the held-out rows see it switched at most this many times as often as
-# the training rows, each as a share of its rows (rig-072's cells left out at 3.5-4.9; the
-# cells of the true shapes rig-028, 052, 088 and 108 reach 1.3, 1.4, 1.2 and 3.05)
-CELL_SUPPORT = 3.3
+CELL_SUPPORT = 3.3    # see _supported (rig-072's cells out at 3.5-4.9; true shapes' cells 1.2-3.05)
 
 
 def finer_loop(fitter: Fitter, p, struct, steps=SHAPE_GRID):
@@ -273,15 +267,15 @@ def finer_loop(fitter: Fitter, p, struct, steps=SHAPE_GRID):
 
 def _supported(fitter: Fitter, q, n):
     """Which of ``q``'s KP cells (after the ``n`` play operators) the training rows see switched
-    at least ``1 / CELL_SUPPORT`` as often as the held-out rows do, each as a share of its rows.
+    at least ``1 / CELL_SUPPORT`` as often as the held-out rows do, each as a share of its rows
+    (the cells of the true shapes rig-028, 052, 088 and 108 reach 1.3, 1.4, 1.2 and 3.05).
 
     A cell switched on at the record's one peak and off at thresholds crossed only inside the
     held-out block after it is a few rows to the fit and a whole block to the validation: its
     weight, fitted to those few, draws a step there (rig-072: 0.94 um off in that block, 0.01-0.05
     elsewhere, and the finer loop that would have taken in an ordinary loop difference failed).
-    Only the command decides this, not the held-out response. A state counts as switched where
-    it differs from its median over the training rows; a cell switched on fewer than
-    ``CELL_SUPPORT`` x 20 held-out rows always stays."""
+    Only the command decides this. A state counts as switched where it differs from its median
+    over the training rows; a cell switched on fewer than 20 x ``CELL_SUPPORT`` held-out rows stays."""
     on_tr = on_ho = 0.0
     for rp, r in zip(fitter.replays(q), fitter.recs):
         zc = rp.z[n:]
