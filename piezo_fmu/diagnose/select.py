@@ -429,12 +429,15 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             removed = max(removed_rms(v) for v in best["cmp"]["channels"].values())
             explained = max(v["explained"] for v in best["cmp"]["channels"].values())
             everywhere = min(v["explained"] for v in best["cmp"]["channels"].values())
+            # the weaker evidence: a loop that removes 1-3 noise rms is named only far from every
+            # classical loop and explaining SHAPE_EXPLAINED_EACH on every channel
+            weak = SHAPE_BEYOND_REMOVED <= removed < SHAPE_REMOVED and explained >= SHAPE_EXPLAINED
+            one_channel = weak and everywhere < SHAPE_EXPLAINED_EACH
             beyond = max(beyond_classical(fitter, best["fit"].params, noise).values()) \
-                if SHAPE_BEYOND_REMOVED <= removed < SHAPE_REMOVED and everywhere >= SHAPE_EXPLAINED_EACH else 0.0
+                if weak and not one_channel else 0.0
             if (removed < SHAPE_REMOVED and beyond < SHAPE_BEYOND) or explained < SHAPE_EXPLAINED:
-                far = f"; its loop {beyond:.2f} x the noise from the best classical PI loop" if beyond else (
-                    f"; {100 * everywhere:.0f} % on its weakest channel" if removed < SHAPE_REMOVED
-                    and explained >= SHAPE_EXPLAINED and everywhere < SHAPE_EXPLAINED_EACH else "")
+                far = (f"; its loop {beyond:.2f} x the noise from the best classical PI loop" if beyond else
+                       f"; {100 * everywhere:.0f} % on its weakest channel" if one_channel else "")
                 step(f"round {rnd + 1}: the finer loop explains {100 * explained:.0f} % ({removed:.2f} x the "
                      f"noise{far}): an ordinary loop difference, taken into the recalibration (not named)")
                 struct, current = _refine(fitter, best, struct, p_base, recal, removed, explained, noise)
