@@ -120,9 +120,9 @@ def test_a_loop_far_from_every_classical_one_is_named_beside_other_misfit(monkey
 
 
 def test_a_loop_with_other_misfit_beside_it_waits_for_the_physics_that_passed():
-    # rig-158: a 1-sample delay and a band of switching domains at 7.65 kHz. In the first round the
-    # finer loop explains 45 % (2.6 noise rms, 3.3 from every classical loop) and the delay, which
-    # passed beside it, 35 %. Named on that partial evidence the loop's cells took the delay's
+    # rig-158: a 1.05 ms (8-sample) delay and a band of switching domains at 7.65 kHz. In the first
+    # round the finer loop explains 45 % (2.6 noise rms, 3.3 from every classical loop) and the
+    # delay, which passed beside it, 35 %. Named on that partial evidence the loop's cells took the delay's
     # misfit and both were lost (the shape a candidate at 0.30); taken in as an ordinary
     # difference, the delay is named in the next round
     from piezo_fmu.diagnose.run import analyse
