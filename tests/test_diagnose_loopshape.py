@@ -68,19 +68,24 @@ def test_a_negative_weight_that_keeps_the_partial_sums_positive_is_not_classical
     assert beyond_classical(fitter, q, noise)["x"] > max(0.5, 10 * classical)
 
 
+def _rig(case_id):
+    from piezo_fmu import rig
+
+    spec = next(s for s in rig.cases() if s.case_id == case_id)
+    rec = rig.generate(spec)
+    return rec, [{"name": case_id, "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
+
+
 def test_a_switching_band_the_recalibration_bent_in_is_named(monkeypatch):
     # rig-108 (533 Hz): a PI device on other thresholds with a band of domains switching at fixed
     # voltages. The recalibrated PI (partial sums of its weights positive, one weight negative) bends
     # part of the band in; the finer loop then removes 2.4 noise rms more, under the 3 a name took
     # alone, but the loop it draws lies 2.8 noise rms from every classical loop: a loop shape
-    from piezo_fmu import rig
     from piezo_fmu.diagnose import select
     from piezo_fmu.diagnose.run import analyse
 
-    spec = next(s for s in rig.cases() if s.case_id == "rig-108")
-    rec = rig.generate(spec)
+    rec, raw = _rig("rig-108")
     assert rec.truth["mechanisms"] == ["hysteresis_shape"]
-    raw = [{"name": "rig-108", "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
     seen = []
     measure = select.beyond_classical
     monkeypatch.setattr(select, "beyond_classical", lambda *a: seen.append(measure(*a)) or seen[-1])
@@ -90,14 +95,6 @@ def test_a_switching_band_the_recalibration_bent_in_is_named(monkeypatch):
     # without the measure (the rule before) the same loop is an ordinary difference
     monkeypatch.setattr(select, "SHAPE_BEYOND", float("inf"))
     assert analyse(raw).result["final"]["effects"] == []
-
-
-def _rig(case_id):
-    from piezo_fmu import rig
-
-    spec = next(s for s in rig.cases() if s.case_id == case_id)
-    rec = rig.generate(spec)
-    return rec, [{"name": case_id, "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
 
 
 def test_a_loop_far_from_every_classical_one_is_named_beside_other_misfit(monkeypatch):
