@@ -5,7 +5,7 @@ import pytest
 from piezo_fmu.core.preisach import grid_cells
 from piezo_fmu.diagnose.engine import device_from_model, params_from_model, predict
 from piezo_fmu.diagnose.fit import Fitter
-from piezo_fmu.diagnose.loopshape import beyond_classical
+from piezo_fmu.diagnose.loopshape import beyond_classical, further_from_nominal
 from piezo_fmu.diagnose.recordings import make_recordings
 from piezo_fmu.model import load_model
 
@@ -68,6 +68,71 @@ def test_a_negative_weight_that_keeps_the_partial_sums_positive_is_not_classical
     assert beyond_classical(fitter, q, noise)["x"] > max(0.5, 10 * classical)
 
 
+def test_a_classical_loop_on_other_thresholds_is_far_only_from_the_nominal_operators():
+    # one more play operator between two nominal thresholds (what the synthetic generator's
+    # shapes add): a classical loop, which no PI on the nominal thresholds draws
+    fitter, p = _fitter_and_model()
+    x = predict(fitter.recs[0], fitter.dev, p)["x"]
+    noise = {"x": 0.001 * float(np.ptp(x)), "us": 1.0}
+    nominal = np.asarray(p.thresholds, float)
+    assert beyond_classical(fitter, p, noise, nominal)["x"] < 1e-6
+    for extra in (0.05, 0.15, 0.25):                       # between 0-0.1, 0.1-0.2, 0.2-0.3
+        q = p.copy()
+        q.thresholds = np.sort(np.append(nominal, extra))
+        q.weights = np.insert(np.asarray(p.weights, float), int(np.searchsorted(q.thresholds, extra)),
+                              0.3 * float(np.sum(p.weights)))
+        far = beyond_classical(fitter, q, noise, nominal)["x"]
+        assert far > 1.0 and far > 3 * beyond_classical(fitter, q, noise)["x"], extra
+        # the increase over the recalibrated (here: nominal) loop, and its reverse
+        assert further_from_nominal(fitter, q, p, noise, nominal) == pytest.approx(
+            far - max(beyond_classical(fitter, p, noise, nominal).values()), rel=1e-9)
+        assert further_from_nominal(fitter, p, q, noise, nominal) < -1.0
+
+
+def _synth(seed):
+    from piezo_fmu.diagnose import evaluate
+    from piezo_fmu.diagnose.synth import make_case
+
+    spec = next(s for s in evaluate.cases() if s["seed"] == seed)
+    case = make_case(spec["seed"], spec["effects"], spec["noise"], spec["kinds"])
+    return case, [{"name": f"synth-{seed}", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
+
+
+def test_a_loop_the_nominal_operators_cannot_draw_is_named(monkeypatch):
+    # synth-1046: two more play operators' worth of loop between the nominal thresholds. The
+    # finer loop explains all the structured residual but removes 2.75 noise rms (under the 3 a
+    # name took alone) and its loop is 1.3 from the classical loops (it is one); it lies 2.75
+    # further from every PI on the nominal thresholds than the recalibrated loop: a loop shape
+    from piezo_fmu.diagnose import select
+    from piezo_fmu.diagnose.run import analyse
+
+    case, raw = _synth(1046)
+    assert case.truth["effects"] == ["hysteresis_shape"]
+    steps = []
+    res = analyse(raw, say=steps.append).result
+    assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
+    assert any("further from the nominal operators' loops" in m for m in steps), steps
+    # without that measure (the rule before) an ordinary loop difference: nothing is missing
+    monkeypatch.setattr(select, "SHAPE_BEYOND_NOMINAL", float("inf"))
+    assert analyse(raw).result["final"]["effects"] == []
+
+
+def test_a_loop_near_the_classical_and_the_nominal_ones_is_not_named_on_its_removal(monkeypatch):
+    # rig-138 (927 Hz; a current limit and a 54 Hz mode, no loop shape): in its third round a finer loop
+    # removes 3.1 noise rms, 98 % of what is left, enough for a name on removal alone, but lies
+    # 0.8 from the classical loops and 1.7 further from the nominal operators' loops: ordinary
+    from piezo_fmu.diagnose import select
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig("rig-138")
+    truth = sorted(rec.truth["mechanisms"])
+    assert truth == ["amplifier_current_limit", "extra_resonance"]
+    assert sorted(analyse(raw).result["final"]["effects"]) == truth
+    # named on its removal alone (the rule before): a false loop shape
+    monkeypatch.setattr(select, "SHAPE_BEYOND_NOMINAL", -float("inf"))
+    assert "hysteresis_shape" in analyse(raw).result["final"]["effects"]
+
+
 def _rig(case_id):
     from piezo_fmu import rig
 
@@ -92,8 +157,9 @@ def test_a_switching_band_the_recalibration_bent_in_is_named(monkeypatch):
     res = analyse(raw).result
     assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
     assert len(seen) == 1 and max(seen[0].values()) >= select.SHAPE_BEYOND
-    # without the measure (the rule before) the same loop is an ordinary difference
+    # without the measures (the rule before) the same loop is an ordinary difference
     monkeypatch.setattr(select, "SHAPE_BEYOND", float("inf"))
+    monkeypatch.setattr(select, "SHAPE_BEYOND_NOMINAL", float("inf"))
     assert analyse(raw).result["final"]["effects"] == []
 
 

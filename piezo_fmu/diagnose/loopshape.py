@@ -19,6 +19,13 @@ start from the fitted model's memory, relaxed, or after a sweep from rest to the
 voltage, whichever fits best (rig-029, a fitted loop with relaxed operators: 16.8 noise rms from
 relaxed classical operators, 1.1 from swept ones). The saturation is ordinary: the classical
 loops are tried without a sag and with the fitted model's.
+
+A loop of the classical kind is still more than the model's own nine operators draw when it needs
+other thresholds: :func:`further_from_nominal` measures how much further a finer loop lies from
+every PI on the nominal thresholds (non-negative weights) than the recalibrated loop did - the
+catalogue's own definition of a loop shape ("a loop the nominal play-operator grid cannot draw"),
+taken as an increase so that what the recalibration's free-signed weights already bent in counts
+as ordinary.
 """
 from __future__ import annotations
 
@@ -32,7 +39,7 @@ from .fit import Fitter
 from .model_io import Params
 
 __all__ = ["CLASSICAL_OPERATORS", "CLASSICAL_ROWS", "CLASSICAL_SCALES", "CLASSICAL_SPACINGS",
-           "beyond_classical"]
+           "beyond_classical", "further_from_nominal"]
 
 CLASSICAL_OPERATORS = 20                            # play operators of the classical loops tried
 CLASSICAL_SPACINGS = (1.0, 2.0)                     # thresholds U (k / (n - 1))^s, k = 0 .. n - 1
@@ -51,7 +58,7 @@ def _nonneg_lsq(cols, y):
     return w
 
 
-def beyond_classical(fitter: Fitter, p: Params, noise: dict) -> dict:
+def beyond_classical(fitter: Fitter, p: Params, noise: dict, thresholds=None) -> dict:
     """What of the loop of ``p`` no classical PI draws, per channel [multiples of its noise rms].
 
     Parameters
@@ -62,6 +69,10 @@ def beyond_classical(fitter: Fitter, p: Params, noise: dict) -> dict:
         A fitted model (its operators and KP cells make the loop).
     noise : dict
         Channel -> noise rms [um for x, V for us].
+    thresholds : array_like, optional
+        One set of thresholds [normalised like ``p.thresholds``] in the place of the grids: how
+        far the loop lies from every PI on those thresholds with non-negative weights (the
+        nominal model's nine: the loop the model's own operators cannot draw).
 
     Returns
     -------
@@ -94,24 +105,51 @@ def beyond_classical(fitter: Fitter, p: Params, noise: dict) -> dict:
     top = max(float(ua.max()) for ua in uas)
     best = np.inf
     k = np.arange(CLASSICAL_OPERATORS) / (CLASSICAL_OPERATORS - 1)
+    grids = ([scale * span * k ** s / p.u_norm for s in CLASSICAL_SPACINGS for scale in CLASSICAL_SCALES]
+             if thresholds is None else [np.asarray(thresholds, float)])
     for prep in sorted({p.prep, 0.0, top}):
-        for s in CLASSICAL_SPACINGS:
-            for scale in CLASSICAL_SCALES:
-                q = p.copy()
-                q.thresholds = scale * span * k ** s / p.u_norm
-                q.weights = np.zeros(CLASSICAL_OPERATORS)
-                q.cells = q.cell_w = None
-                q.cells_held = False
-                q.prep = prep
-                cols = []
-                for ua in uas:           # each recording's operators, their mean removed
-                    z = operators(ua, q)
-                    cols.append(z - z.mean(axis=1, keepdims=True))
-                cols = np.hstack(cols)[:, ::every]
-                for sag, y, mean in targets:
-                    fit = _nonneg_lsq(cols, y) @ cols + mean
-                    if sag != np.inf:
-                        fit = fit / (1.0 + np.abs(fit) / sag)
-                    best = min(best, float(np.sum((fit - h) ** 2)))
+        for grid in grids:
+            q = p.copy()
+            q.thresholds = grid
+            q.weights = np.zeros(grid.size)
+            q.cells = q.cell_w = None
+            q.cells_held = False
+            q.prep = prep
+            cols = []
+            for ua in uas:           # each recording's operators, their mean removed
+                z = operators(ua, q)
+                cols.append(z - z.mean(axis=1, keepdims=True))
+            cols = np.hstack(cols)[:, ::every]
+            for sag, y, mean in targets:
+                fit = _nonneg_lsq(cols, y) @ cols + mean
+                if sag != np.inf:
+                    fit = fit / (1.0 + np.abs(fit) / sag)
+                best = min(best, float(np.sum((fit - h) ** 2)))
     left = np.sqrt(best / h.size)
     return {c: float(left * np.mean(g) / noise[c]) if g else 0.0 for c, g in gains.items()}
+
+
+def further_from_nominal(fitter: Fitter, p_new: Params, p_old: Params, noise: dict, thresholds) -> float:
+    """How much further the loop of ``p_new`` lies from every PI on ``thresholds`` (non-negative
+    weights) than that of ``p_old`` [noise rms, best channel of each].
+
+    Parameters
+    ----------
+    fitter : Fitter
+        The recordings and device.
+    p_new, p_old : Params
+        The finer loop's model and the recalibrated one it would replace.
+    noise : dict
+        Channel -> noise rms [um for x, V for us].
+    thresholds : array_like
+        The nominal thresholds [normalised like ``p_old.thresholds``].
+
+    Returns
+    -------
+    float
+        ``max_ch beyond(p_new) - max_ch beyond(p_old)`` with :func:`beyond_classical` on
+        ``thresholds``; negative when the finer loop is nearer the nominal operators' loops.
+    """
+    new = beyond_classical(fitter, p_new, noise, thresholds)
+    old = beyond_classical(fitter, p_old, noise, thresholds)
+    return max(new.values(), default=0.0) - max(old.values(), default=0.0)
