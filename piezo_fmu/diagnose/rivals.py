@@ -8,7 +8,9 @@
   :func:`drift_or_creep` after the backward check);
 * a further mode where the device's first mode would do is that first mode
   (:func:`resonance_or_mode`);
-* a delay where the amplifier's second lag stage would do is that stage (:func:`delay_or_lag`).
+* a delay where the amplifier's second lag stage would do is that stage (:func:`delay_or_lag`);
+* a delay screened beside a named further mode is fitted even when its screening gained nothing
+  (:func:`beside_named_mode`).
 """
 from __future__ import annotations
 
@@ -23,8 +25,8 @@ from .recalibrate import ITEM_K, ITEM_PARAMS, adopt_mode, drop, mode_at
 from .residuals import ACCEPT, residual_sets
 from .stats import compare
 
-__all__ = ["CREEP_BEFORE_DRIFT", "MODE_EVIDENCE", "ORDINARY_ADOPTIONS", "SHAPE_LAST", "creep_before_drift",
-           "delay_or_lag", "drift_both", "drift_or_creep", "ordinary_found", "physics_before_shape", "resonance_or_mode"]
+__all__ = ["CREEP_BEFORE_DRIFT", "MODE_EVIDENCE", "ORDINARY_ADOPTIONS", "SHAPE_LAST", "beside_named_mode",
+           "creep_before_drift", "delay_or_lag", "drift_both", "drift_or_creep", "ordinary_found", "physics_before_shape", "resonance_or_mode"]
 
 SHAPE_LAST = 0.8           # a physical mechanism explaining this share of what a finer loop does goes first
 
@@ -236,3 +238,16 @@ def delay_or_lag(fitter, best, struct, p_base, recal, step, rnd):
     for item in best["dropped"]:
         drop(fitter, recal, item, why="the second lag stage explains it")
     return recal.params
+
+
+def beside_named_mode(struct, screened, tried):
+    """The screened entries ``(gain, name, start, alts)`` a round fits although their screening
+    gained nothing: when nothing it tried passed and a further mode is named, the delay. Its
+    screening holds that mode, whose phase a delay moves (and the held mode's phase had taken part
+    of the delay): synth-1067, a 0.2 ms delay beside the named 248 Hz mode, screened 31 % worse than
+    the model without it; fitted, it explained 97 % and 95 % of what was left on the two channels
+    (BIC gain 17357), the residual at the noise after it."""
+    if any(t["passed"] for t in tried) or "extra_resonance" not in struct.effects:
+        return []
+    done = {t["name"] for t in tried}
+    return [s for s in screened if s[1] == "time_delay" and s[1] not in done and s[0] <= 0]

@@ -31,8 +31,8 @@ from .fit import Fitter, free_names, get_value, set_value, strip
 from .loopshape import beyond_classical, further_from_nominal
 from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, drop, present, without
 from .residuals import ACCEPT, full_residuals, residual_peaks, residual_sets
-from .rivals import (ORDINARY_ADOPTIONS, creep_before_drift, delay_or_lag, drift_both, drift_or_creep, ordinary_found,
-                     physics_before_shape, resonance_or_mode)
+from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, creep_before_drift, delay_or_lag, drift_both,
+                     drift_or_creep, ordinary_found, physics_before_shape, resonance_or_mode)
 from .stats import compare
 
 __all__ = ["ACCEPT", "CONFIDENT", "confidence", "full_residuals", "noise_levels", "put_in", "refine_delay",
@@ -60,11 +60,9 @@ SHAPE_REMOVED = 3.0
 # removal beside a mode) and rig-180's in its first round (2.31: the recalibrated loop bent to a
 # current limit not yet found; the finer loop removes 0.83 more)
 # A loop shape is the stroke's, which every recorded channel sees: on this weaker evidence the
-# finer loop must explain SHAPE_EXPLAINED_EACH of the structured residual on every channel, not only on
-# its best one (rig survey, 2026-11-27 15:50: the six shapes named this way explain 0.71-0.95 on
-# each channel; rig-136, a 160 Hz mode and leakage with its amplifier lag recalibrated at 5.0 ms for
-# 0.9 + 0.4, got a third round once the screening cost less and a finer loop explaining 0.80 of the
-# displacement's misfit and 0.22 of the sensor's, 3.04 noise rms from every classical loop)
+# finer loop must explain SHAPE_EXPLAINED_EACH of the structured residual on every channel (rig survey,
+# 2026-11-27 15:50: the six shapes named this way explain 0.71-0.95 on each; rig-136's loop beside a mode
+# and leakage, 0.80 of the displacement's misfit and 0.22 of the sensor's, 3.04 from every classical loop)
 SHAPE_BEYOND = 2.0
 SHAPE_BEYOND_REMOVED = 1.0
 SHAPE_EXPLAINED_EACH = 0.7
@@ -74,9 +72,8 @@ SHAPE_EXPLAINED_EACH = 0.7
 # 2026-11-27 21:10, every shape decision of the 185 cases, as explained/removed/beyond: the true
 # shapes rig-157 and 169 0.48/4.9/3.8 and 0.59/2.1/4.7; other loops: the clean rig-113
 # 0.41/1.87/8.0, rig-107 0.49/5.3/2.5, and of that share and removal rig-072 and 150 0.5 and 1.0
-# from them. rig-158's loop, 0.45/2.6/3.3, had its delay pass beside it: named, the loop's cells
-# took the delay's misfit and both were lost; with the delay first, the loop explains 56 % at 2.2
-# from the classical loops and the delay falls to a candidate at 0.49; refined, the delay is named)
+# from them. rig-158's loop, 0.45/2.6/3.3, had its delay pass beside it: named, its cells took the delay's
+# misfit and both were lost; with the delay first and the loop refined, the delay is named)
 SHAPE_PARTIAL_EXPLAINED = 0.4
 SHAPE_PARTIAL_REMOVED = 2.0
 SHAPE_PARTIAL_BEYOND = 3.0
@@ -90,9 +87,8 @@ SHAPE_PARTIAL_BEYOND = 3.0
 # their classical distance (2.09-36), this one being often below 2 (rig-105 0.40)
 SHAPE_BEYOND_NOMINAL = 2.0
 LOOP_HELDOUT_BETA = (0.8, 1.25)   # a finer loop the BIC refuses: the held-out share it must take...
-# ...at this many standard errors (then an ordinary refinement): what every candidate's held-out
-# test asks (at 5, rig-060's loop at z 3.1 and 3.2 stayed in the residual and hid the thermal
-# drift beside it)
+# ...at this many standard errors (then an ordinary refinement), as every candidate's held-out test
+# (at 5, rig-060's loop at z 3.1 and 3.2 stayed in the residual and hid the thermal drift beside it)
 LOOP_HELDOUT_Z = ACCEPT["z_heldout"]
 
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
@@ -403,6 +399,11 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 break
             tried.append(_try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cctx, recal,
                               step, rnd))
+        for gain, name, start, alts in (() if fitter.out_of_time() else beside_named_mode(struct, screened, tried)):
+            step(f"round {rnd + 1}: {name} screened {-gain / max(q0, 1e-300):.3g} worse with the named mode "
+                 "held (a delay moves its phase): fitted as well")
+            tried.append(_try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cctx,
+                              recal, step, rnd))
         if not any(t["passed"] for t in tried):
             better = None if adopted >= ORDINARY_ADOPTIONS else ordinary_found(fitter, tried, current, struct,
                                                                                   p_base, sets_cur, noise)
