@@ -26,7 +26,8 @@ from .residuals import ACCEPT, residual_sets
 from .stats import compare
 
 __all__ = ["CREEP_BEFORE_DRIFT", "MODE_EVIDENCE", "ORDINARY_ADOPTIONS", "SHAPE_LAST", "beside_named_mode",
-           "creep_before_drift", "delay_or_lag", "drift_both", "drift_or_creep", "ordinary_found", "physics_before_shape", "resonance_or_mode"]
+           "creep_before_drift", "delay_or_lag", "drift_both", "drift_or_creep", "ordinary_found",
+           "physics_before_shape", "resonance_or_mode"]
 
 SHAPE_LAST = 0.8           # a physical mechanism explaining this share of what a finer loop does goes first
 
@@ -247,7 +248,7 @@ def beside_named_mode(struct, screened, tried):
     of the delay): synth-1067, a 0.2 ms delay beside the named 248 Hz mode, screened 31 % worse than
     the model without it; fitted, it explained 97 % and 95 % of what was left on the two channels
     (BIC gain 17357), the residual at the noise after it."""
-    if any(t["passed"] for t in tried) or "extra_resonance" not in struct.effects:
+    if "extra_resonance" not in struct.effects \
+            or any(t["passed"] or t["name"] == "time_delay" for t in tried):
         return []
-    done = {t["name"] for t in tried}
-    return [s for s in screened if s[1] == "time_delay" and s[1] not in done and s[0] <= 0]
+    return [s for s in screened if s[1] == "time_delay" and s[0] <= 0]

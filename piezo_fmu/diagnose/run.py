@@ -27,6 +27,7 @@ from . import locate
 from .blas import single_thread
 from .engine import Device, Params, device_from_model, params_from_model, predict
 from .fit import Fitter, Structure, strip
+from .heap import kept
 from .recalibrate import channel_uncertainty, ordinary_names, recalibrate, revisit, uncertainty
 from .recordings import load_recordings, make_recordings
 from .residuals import residual_peaks
@@ -83,7 +84,7 @@ def analyse(raw, model: Model | None = None, say=None, max_rounds=5, time_budget
     candidate search is started (what was found stays; ``diagnosis.json`` says so under
     ``rejected``); ``None`` for no limit. Counted as work (``WORK_PER_S``), not time: the result
     does not depend on the machine or its load."""
-    with single_thread():
+    with single_thread(), kept():
         return _analyse(raw, model, say, max_rounds, time_budget_s)
 
 
