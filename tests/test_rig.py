@@ -216,6 +216,17 @@ def test_full_set_composition():
     assert [s.case_id for s in cases()] == [s.case_id for s in specs]      # deterministic
 
 
+def test_a_fresh_draw_has_the_same_composition_on_other_seeds():
+    """``draw=k``: the set drawn again from other seeds (cases no rule was tuned on), named apart."""
+    base, fresh = cases(), cases(draw=1)
+    assert not {s.seed for s in base} & {s.seed for s in fresh}
+    assert not {s.seed for s in fresh} & {s.seed for s in cases(draw=2)}
+    assert all(s.case_id.startswith("rig-d1-") for s in fresh)
+    key = lambda s: (s.group, tuple(sorted(s.mechanisms)), s.hidden, s.control, s.channels)  # noqa: E731
+    assert Counter(map(key, base)) == Counter(map(key, fresh))
+    assert [s.case_id for s in cases(draw=1)] == [s.case_id for s in fresh]
+
+
 @pytest.fixture(scope="module")
 def quick():
     specs = cases(quick=True)

@@ -1,6 +1,6 @@
 """Recognition studies: run diagnose blind on concealed recordings and count what it names.
 
-``python -m piezo_fmu.diagnose.evaluate [--generator synth|rig|both] [--quick] [--jobs 2]
+``python -m piezo_fmu.diagnose.evaluate [--generator synth|rig|both] [--quick] [--draw K] [--jobs 2]
 [--scheduler tcp://HOST:PORT] [--only GROUPS] [--cases NAMES] [--ceiling] [--out eval.json]
 [--markdown table.md]``
 
@@ -51,12 +51,13 @@ from .synth import EFFECTS, PROGRAMMES, VISIBLE
 __all__ = ["cases", "main", "rig_cases", "run_case", "run_rig_case"]
 
 
-def cases(quick=False):
-    """The list of case specifications (dicts)."""
+def cases(quick=False, draw=0):
+    """The list of case specifications (dicts); ``draw`` >= 1: the same composition on fresh seeds
+    (``synth-<1000 draw + ...>``, cases no rule of diagnose was tuned on)."""
     out = []
-    seed = 1000
+    seed = 1000 * (draw + 1)
     noises = ("low", "mid", "high")
-    rng = np.random.default_rng(7)
+    rng = np.random.default_rng(7 + draw)
 
     def kinds():
         k = int(rng.integers(2, 5))
@@ -190,11 +191,11 @@ def run_case(spec, ceiling=False):
     return {**spec, **out}
 
 
-def rig_cases(quick=False):
-    """The rig's concealed cases (its own specs)."""
+def rig_cases(quick=False, draw=0):
+    """The rig's concealed cases (its own specs; ``draw`` >= 1: the same composition on fresh seeds)."""
     from .. import rig
 
-    return list(rig.cases(quick=quick))
+    return list(rig.cases(quick=quick, draw=draw))
 
 
 def run_rig_case(spec, ceiling=False):
@@ -234,15 +235,17 @@ def _case_line(r, done, n, t0):
             + (f" ERROR {r['error']}" if r.get("error") else ""))
 
 
-def study(generator, quick=False, jobs=None, scheduler=None, only=None, log=None, ceiling=False, cases_=None):
+def study(generator, quick=False, jobs=None, scheduler=None, only=None, log=None, ceiling=False, cases_=None,
+          draw=0):
     """Run one generator's cases; returns ``(summary, results)``. ``only``: case groups to run;
-    ``cases_``: case names to run; ``ceiling``: put each miss in afterwards (:func:`_ceiling`)."""
+    ``cases_``: case names to run; ``ceiling``: put each miss in afterwards (:func:`_ceiling`);
+    ``draw``: 0 the established set, k >= 1 the same composition on fresh seeds."""
     from ..parallel import map_as_completed
 
     make, run = GENERATORS[generator]
     if ceiling:
         run = functools.partial(run, ceiling=True)
-    specs = make(quick)
+    specs = make(quick, draw)
     if only:
         keep = set(only)
         specs = [c for c in specs if (c["group"] if isinstance(c, dict) else c.group) in keep]
@@ -273,6 +276,9 @@ def main(argv=None):
     ap.add_argument("--scheduler", default=None, metavar="ADDRESS",
                     help="run on an existing dask.distributed cluster (tcp://HOST:PORT)")
     ap.add_argument("--quick", action="store_true", help="the generators' smaller case sets")
+    ap.add_argument("--draw", type=int, default=0, metavar="K",
+                    help="0 (default): the established sets; K >= 1: the same composition drawn afresh from "
+                         "other seeds - cases no rule of diagnose was tuned on")
     ap.add_argument("--only", default="", help="comma-separated case groups to run")
     ap.add_argument("--cases", default="", help="comma-separated case names to run (rig-017, synth-1046, ...)")
     ap.add_argument("--ceiling", action="store_true",
@@ -295,7 +301,8 @@ def main(argv=None):
         try:
             s, results = study(gen, a.quick, a.jobs, a.scheduler, only,
                                log=lambda line: print(line, file=sys.stderr, flush=True), ceiling=a.ceiling,
-                               cases_=[n for n in names if n.startswith(f"{gen}-")] if names else None)
+                               cases_=[n for n in names if n.startswith(f"{gen}-")] if names else None,
+                               draw=a.draw)
         except ValueError as exc:
             ap.error(str(exc))
         report[gen] = {"summary": s, "results": results}

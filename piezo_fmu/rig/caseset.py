@@ -120,7 +120,10 @@ def _assemble(rows, seed0: int, prefix: str, **limits) -> list[CaseSpec]:
     return out
 
 
-def cases(quick: bool = False) -> list[CaseSpec]:
+DRAW_SEED_STEP = 10_000   # seeds of draw k: the set's seed0 + k * DRAW_SEED_STEP (a set uses < 1200)
+
+
+def cases(quick: bool = False, draw: int = 0) -> list[CaseSpec]:
     """The concealed evaluation set (deterministic).
 
     Parameters
@@ -131,6 +134,9 @@ def cases(quick: bool = False) -> list[CaseSpec]:
         15 controls (3 of each), 10 one-channel cases. True: 16 short cases (<= 4 s,
         <= 5 kHz): every mechanism alone, two pairs, three clean (one with a hidden
         mechanism), three controls, one one-channel case.
+    draw : int
+        0: the established set (``rig-000`` ...). ``k >= 1``: the same composition drawn afresh
+        from other seeds (``rig-d<k>-000`` ...): cases no rule of diagnose was tuned on.
 
     Returns
     -------
@@ -147,7 +153,8 @@ def cases(quick: bool = False) -> list[CaseSpec]:
         rows += [("control", (), (), c, "both")
                  for c in ("mains_hum", "push_rod_backlash", "us_offset_drift")]
         rows += [("one_channel", ("time_delay",), (), None, "x")]
-        return _assemble(rows, 4_100_000, "quick-", max_duration=4.0, max_rate=5000.0)
+        return _assemble(rows, 4_100_000 + draw * DRAW_SEED_STEP, f"quick-d{draw}-" if draw else "quick-",
+                         max_duration=4.0, max_rate=5000.0)
     for i in range(27):
         hidden = (cat[i % 7],) if i < 9 else ()
         rows.append(("clean", (), hidden, None, "both"))
@@ -167,7 +174,7 @@ def cases(quick: bool = False) -> list[CaseSpec]:
                   ("extra_resonance", "us"), ("amplifier_current_limit", "us"), ("creep", "us"),
                   (None, "us")]:
         rows.append(("one_channel", (m,) if m else (), (), None, ch))
-    return _assemble(rows, 7_300_000, "rig-")
+    return _assemble(rows, 7_300_000 + draw * DRAW_SEED_STEP, f"rig-d{draw}-" if draw else "rig-")
 
 
 # ----------------------------------------------------------------------------------------------
