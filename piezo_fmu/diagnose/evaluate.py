@@ -142,9 +142,10 @@ def _ceiling(diag, missed):
     return out
 
 
-def _diagnose(raw, truth=None):
+def _diagnose(raw, truth=None, log=None):
     """Diagnose ``raw`` blind; with ``truth`` (the visible true mechanisms, given only for the
-    post-mortem, after the diagnosis is complete) also the ``ceiling`` of each miss."""
+    post-mortem, after the diagnosis is complete) also the ``ceiling`` of each miss. ``log``: a
+    file the diagnosis's progress lines (every screening, fit and decision) are written to."""
     import warnings
 
     from .run import analyse
@@ -152,8 +153,9 @@ def _diagnose(raw, truth=None):
     warnings.simplefilter("ignore")
     t0 = time.perf_counter()
     seconds = None
+    lines = []
     try:
-        diag = analyse(raw)
+        diag = analyse(raw, say=lines.append if log else None)
         seconds = time.perf_counter() - t0            # the diagnosis alone
         out = _outcome(diag.result)
         if truth is not None:
@@ -163,20 +165,27 @@ def _diagnose(raw, truth=None):
     except Exception as exc:  # noqa: BLE001 - a crash is a result too, counted and reported
         out = {"named": [], "confidence": {}, "candidates": {}, "nothing_missing": False, "verdict": "",
                "error": repr(exc)}
+        lines.append(f"ERROR {exc!r}")
     out["seconds"] = seconds if seconds is not None else time.perf_counter() - t0
+    if log:
+        Path(log).write_text("\n".join(lines) + "\n")
     return out
 
 
-def run_case(spec, ceiling=False):
+def _log_file(logs, name):
+    return None if logs is None else str(Path(logs) / f"{name}.log")
+
+
+def run_case(spec, ceiling=False, logs=None):
     """One synth case: generate, diagnose blind, score against the truth (``ceiling``: and put each
-    miss in afterwards, see :func:`_ceiling`)."""
+    miss in afterwards, see :func:`_ceiling`; ``logs``: a folder for the diagnosis's progress log)."""
     from .synth import make_case
 
     case = make_case(spec["seed"], spec["effects"], spec["noise"], spec["kinds"],
                      channels=tuple(spec.get("channels", ("x", "us"))))
     raw = [{"name": f"case{spec['seed']}", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
     visible = [e for e in spec["effects"] if e in EFFECTS and case.truth["visibility"][e] >= VISIBLE]
-    out = _diagnose(raw, visible if ceiling else None)
+    out = _diagnose(raw, visible if ceiling else None, _log_file(logs, f"synth-{spec['seed']}"))
     out["visibility"] = _visibility(spec, case)
     # a mechanism still below visibility at the end of its range is hidden, as in the rig: naming it
     # is no false name, missing it no miss
@@ -198,14 +207,15 @@ def rig_cases(quick=False, draw=0):
     return list(rig.cases(quick=quick, draw=draw))
 
 
-def run_rig_case(spec, ceiling=False):
+def run_rig_case(spec, ceiling=False, logs=None):
     """One rig case: the rig generates it (its truth stays here), diagnose sees the recording only
-    (``ceiling``: each miss is put in afterwards, see :func:`_ceiling`)."""
+    (``ceiling``: each miss is put in afterwards, see :func:`_ceiling`; ``logs``: a folder for the
+    diagnosis's progress log)."""
     from .. import rig
 
     rec = rig.generate(spec)
     raw = [{"name": str(rec.truth.get("case_id", "case")), "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
-    out = _diagnose(raw, list(rec.truth.get("mechanisms", [])) if ceiling else None)
+    out = _diagnose(raw, list(rec.truth.get("mechanisms", [])) if ceiling else None, _log_file(logs, spec.case_id))
     t = rec.truth
     params = t.get("params", {})                 # the device's own loop family and its shape feature
     shape = params.get("hysteresis_shape.variant", {}).get("value")
@@ -236,15 +246,18 @@ def _case_line(r, done, n, t0):
 
 
 def study(generator, quick=False, jobs=None, scheduler=None, only=None, log=None, ceiling=False, cases_=None,
-          draw=0):
+          draw=0, logs=None):
     """Run one generator's cases; returns ``(summary, results)``. ``only``: case groups to run;
     ``cases_``: case names to run; ``ceiling``: put each miss in afterwards (:func:`_ceiling`);
-    ``draw``: 0 the established set, k >= 1 the same composition on fresh seeds."""
+    ``draw``: 0 the established set, k >= 1 the same composition on fresh seeds; ``logs``: a folder
+    each case's progress log is written to (``<case>.log``)."""
     from ..parallel import map_as_completed
 
     make, run = GENERATORS[generator]
-    if ceiling:
-        run = functools.partial(run, ceiling=True)
+    if ceiling or logs:
+        if logs:
+            Path(logs).mkdir(parents=True, exist_ok=True)
+        run = functools.partial(run, ceiling=ceiling, logs=None if logs is None else str(Path(logs).resolve()))
     specs = make(quick, draw)
     if only:
         keep = set(only)
@@ -284,6 +297,8 @@ def main(argv=None):
     ap.add_argument("--ceiling", action="store_true",
                     help="after each diagnosis, put every missed mechanism into the final model and run the "
                          "tests on it: does the recording show it when the tool is told to look?")
+    ap.add_argument("--logs", metavar="DIR", help="write each case's diagnosis log (every screening, fit and "
+                                                 "decision) to DIR/<case>.log")
     ap.add_argument("--out", help="write all results as JSON")
     ap.add_argument("--markdown", help="write the tables as markdown")
     a = ap.parse_args(argv)
@@ -302,7 +317,7 @@ def main(argv=None):
             s, results = study(gen, a.quick, a.jobs, a.scheduler, only,
                                log=lambda line: print(line, file=sys.stderr, flush=True), ceiling=a.ceiling,
                                cases_=[n for n in names if n.startswith(f"{gen}-")] if names else None,
-                               draw=a.draw)
+                               draw=a.draw, logs=a.logs)
         except ValueError as exc:
             ap.error(str(exc))
         report[gen] = {"summary": s, "results": results}
