@@ -261,3 +261,22 @@ def test_the_evaluation_names_a_case_it_does_not_have(capsys, args, words):
     assert ex.value.code == 2
     err = capsys.readouterr().err
     assert all(w in err for w in words), err
+
+
+def test_the_evaluation_draws_afresh_and_writes_each_case_log(tmp_path, capsys):
+    # --draw 1: the rig's set on other seeds (rig-d1-111: a clean 250 Hz record of 1810 samples);
+    # --logs: the diagnosis's every screening, fit and decision, for the post-mortem
+    import json
+
+    from piezo_fmu.diagnose.evaluate import main as evaluate
+
+    logs, out = tmp_path / "logs", tmp_path / "eval.json"
+    assert evaluate(["--generator", "rig", "--draw", "1", "--cases", "rig-d1-111", "--jobs", "0",
+                     "--logs", str(logs), "--out", str(out)]) == 0
+    res = json.loads(out.read_text())["rig"]["results"]
+    assert [r["case"] for r in res] == ["rig-d1-111"] and res[0]["group"] == "clean"
+    text = (logs / "rig-d1-111.log").read_text()
+    assert "recalibrating the nominal model" in text and "round 1: screening gains" in text
+    with pytest.raises(SystemExit) as ex:          # a case of draw 1 is no case of the established set
+        evaluate(["--generator", "rig", "--cases", "rig-d1-111", "--jobs", "0"])
+    assert ex.value.code == 2
