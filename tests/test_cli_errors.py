@@ -251,6 +251,7 @@ def test_a_reader_that_goes_away_ends_the_command_quietly():
     (["--generator", "rig", "--cases", "rig-999"], ["no rig case named rig-999"]),
     (["--cases", "rig-017,foo-1"], ["foo-1", "no case of rig or synth"]),
     (["--generator", "synth", "--cases", "rig-017"], ["rig-017", "no case of synth"]),
+    (["--draw", "-1"], ["--draw -1", "positive"]),
 ])
 def test_the_evaluation_names_a_case_it_does_not_have(capsys, args, words):
     # a misspelt case name ran nothing and reported an empty table; now it is bad input

@@ -1,7 +1,7 @@
 """Recognition studies: run diagnose blind on concealed recordings and count what it names.
 
 ``python -m piezo_fmu.diagnose.evaluate [--generator synth|rig|both] [--quick] [--draw K] [--jobs 2]
-[--scheduler tcp://HOST:PORT] [--only GROUPS] [--cases NAMES] [--ceiling] [--out eval.json]
+[--scheduler tcp://HOST:PORT] [--only GROUPS] [--cases NAMES] [--ceiling] [--logs DIR] [--out eval.json]
 [--markdown table.md]``
 
 Two generators:
@@ -298,10 +298,12 @@ def main(argv=None):
                     help="after each diagnosis, put every missed mechanism into the final model and run the "
                          "tests on it: does the recording show it when the tool is told to look?")
     ap.add_argument("--logs", metavar="DIR", help="write each case's diagnosis log (every screening, fit and "
-                                                 "decision) to DIR/<case>.log")
+                                                 "decision) to DIR/<case>.log (on the machine that runs the case)")
     ap.add_argument("--out", help="write all results as JSON")
     ap.add_argument("--markdown", help="write the tables as markdown")
     a = ap.parse_args(argv)
+    if a.draw < 0:
+        ap.error(f"--draw {a.draw}: a draw is 0 (the established sets) or a positive number")
     gens = ("rig", "synth") if a.generator == "both" else (a.generator,)
     only = [g for g in a.only.split(",") if g] or None
     names = [c for c in a.cases.split(",") if c] or None
