@@ -53,7 +53,7 @@ __all__ = ["cases", "main", "rig_cases", "run_case", "run_rig_case"]
 
 def cases(quick=False, draw=0):
     """The list of case specifications (dicts); ``draw`` >= 1: the same composition on fresh seeds
-    (``synth-<1000 draw + ...>``, cases no rule of diagnose was tuned on)."""
+    (``synth-<1000 (draw + 1) + k>``, cases no rule of diagnose was tuned on)."""
     out = []
     seed = 1000 * (draw + 1)
     noises = ("low", "mid", "high")
@@ -254,10 +254,10 @@ def study(generator, quick=False, jobs=None, scheduler=None, only=None, log=None
     from ..parallel import map_as_completed
 
     make, run = GENERATORS[generator]
-    if ceiling or logs:
-        if logs:
-            Path(logs).mkdir(parents=True, exist_ok=True)
-        run = functools.partial(run, ceiling=ceiling, logs=None if logs is None else str(Path(logs).resolve()))
+    if logs:
+        logs = Path(logs).resolve()
+        logs.mkdir(parents=True, exist_ok=True)
+    run = functools.partial(run, ceiling=ceiling, logs=None if logs is None else str(logs))
     specs = make(quick, draw)
     if only:
         keep = set(only)

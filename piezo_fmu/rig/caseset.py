@@ -120,7 +120,7 @@ def _assemble(rows, seed0: int, prefix: str, **limits) -> list[CaseSpec]:
     return out
 
 
-DRAW_SEED_STEP = 10_000   # seeds of draw k: the set's seed0 + k * DRAW_SEED_STEP (a set uses < 1200)
+DRAW_SEED_STEP = 10_000   # draw k's seed0 is the set's + k * DRAW_SEED_STEP (a set's seeds: seed0 + 1000 + index)
 
 
 def cases(quick: bool = False, draw: int = 0) -> list[CaseSpec]:
