@@ -28,7 +28,10 @@ from .catalogue import CATALOGUE, plausible, propose, shape_size, swapped_mode
 from .decide import (CONFIDENT, at_bound, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score, told_apart)
 from .fit import Fitter, free_names, get_value, set_value, strip
-from .loopshape import beyond_classical, further_from_nominal
+from .loopshape import (SHAPE_BESIDE_BEYOND, SHAPE_BEYOND, SHAPE_BEYOND_NOMINAL, SHAPE_BEYOND_REMOVED,
+                        SHAPE_EXPLAINED, SHAPE_EXPLAINED_EACH, SHAPE_PARTIAL_BEYOND, SHAPE_PARTIAL_EXPLAINED,
+                        SHAPE_PARTIAL_REMOVED, SHAPE_REMOVED, beyond_classical, further_from_nominal,
+                        loop_beside)
 from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, drop, present, without
 from .residuals import ACCEPT, full_residuals, residual_peaks, residual_sets
 from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, creep_before_drift, delay_or_lag, drift_both,
@@ -38,54 +41,6 @@ from .stats import compare
 __all__ = ["ACCEPT", "CONFIDENT", "confidence", "full_residuals", "noise_levels", "put_in", "refine_delay",
            "residual_sets", "select"]
 
-# a finer loop is missing loop shape when it explains most of what is left (this share of the
-# structured residual on its best channel) by at least three times the noise (removed structured
-# rms, in noise rms) and is far (SHAPE_BEYOND_NOMINAL); one that only trims a residual whose larger
-# part stays, or removes less, is approximating a loop of another kind (another hysteresis family,
-# other thresholds) or bending to another misfit: an ordinary difference, taken into the
-# recalibration, not named. A device's own loop of another family lies up to ~1.5 noise rms from the
-# best nine-operator PI (the rig's clean devices do), a loop shape worth a name 3 or more (both
-# generators' present shapes). Twice was enough for play operators alone; the KP cells bend further:
-# a leakage's, a drift's and a current limit's leftovers gave 2.1-2.4 (rig-053, 035, 023), named
-# shapes 3.2-10 (rig-041, 030, 027)
-SHAPE_EXPLAINED = 0.7
-SHAPE_REMOVED = 3.0
-# ... or, removing less (but at least SHAPE_BEYOND_REMOVED) beyond the recalibrated loop, when the
-# loop it draws lies at least SHAPE_BEYOND (noise rms, best channel) from every classical PI loop
-# (:mod:`.loopshape`): the recalibrated PI may take negative weights and bend part of a shape in
-# itself. Rig survey, 2026-11-27 (a spy at every shape decision of the 185 cases, classical loops
-# without a sag; with the fitted sag, as the rule measures, for the cases near the line): true
-# shapes explaining >= 70 % 1.97-39 (rig-078 1.97, 088 2.09, 028 2.23, 115 2.39, 108 2.76), other
-# loops explaining >= 70 % 0.1-1.5 (rig-079 1.49), but rig-123's (2.03, already named for its
-# removal beside a mode) and rig-180's in its first round (2.31: the recalibrated loop bent to a
-# current limit not yet found; the finer loop removes 0.83 more)
-# A loop shape is the stroke's, which every recorded channel sees: on this weaker evidence the
-# finer loop must explain SHAPE_EXPLAINED_EACH of the structured residual on every channel (rig survey,
-# 2026-11-27 15:50: the six shapes named this way explain 0.71-0.95 on each; rig-136's loop beside a mode
-# and leakage, 0.80 of the displacement's misfit and 0.22 of the sensor's, 3.04 from every classical loop)
-SHAPE_BEYOND = 2.0
-SHAPE_BEYOND_REMOVED = 1.0
-SHAPE_EXPLAINED_EACH = 0.7
-# A loop far from every classical one may leave other misfit beside it: it is named from
-# SHAPE_PARTIAL_EXPLAINED on its best channel when it removes SHAPE_PARTIAL_REMOVED and lies
-# SHAPE_PARTIAL_BEYOND from them, and no physical candidate passed beside it (rig survey,
-# 2026-11-27 21:10, every shape decision of the 185 cases, as explained/removed/beyond: the true
-# shapes rig-157 and 169 0.48/4.9/3.8 and 0.59/2.1/4.7; other loops: the clean rig-113
-# 0.41/1.87/8.0, rig-107 0.49/5.3/2.5, and of that share and removal rig-072 and 150 0.5 and 1.0
-# from them. rig-158's loop, 0.45/2.6/3.3, had its delay pass beside it: named, its cells took the delay's
-# misfit and both were lost; with the delay first and the loop refined, the delay is named)
-SHAPE_PARTIAL_EXPLAINED = 0.4
-SHAPE_PARTIAL_REMOVED = 2.0
-SHAPE_PARTIAL_BEYOND = 3.0
-# Every named loop (but one with other misfit beside it) is one the nominal operators cannot draw:
-# SHAPE_BEYOND from every classical loop, or SHAPE_BEYOND_NOMINAL further than the recalibrated loop
-# from every PI on the nominal thresholds (:func:`.loopshape.further_from_nominal`; a classical loop
-# on other thresholds). Survey of every shape decision, 2026-11-27 23:20-00:35, rig 185 and synth 80:
-# the synth's shapes (added operators, 0.5-1.3 from the classical loops) 2.09-4.18 (synth-1062 2.09;
-# the four then missed 2.20-2.90); loops of no shape at most 1.67 (rig-138 and rig-084 -1.43, both
-# named on removal alone: false), on the weaker evidence 1.52 (rig-096); the rig's shapes pass on
-# their classical distance (2.09-36), this one being often below 2 (rig-105 0.40)
-SHAPE_BEYOND_NOMINAL = 2.0
 LOOP_HELDOUT_BETA = (0.8, 1.25)   # a finer loop the BIC refuses: the held-out share it must take...
 # ...at this many standard errors (then an ordinary refinement), as every candidate's held-out test
 # (at 5, rig-060's loop at z 3.1 and 3.2 stayed in the residual and hid the thermal drift beside it)
@@ -299,7 +254,9 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
     s_new = struct.with_effect(name, shape_size(first, p_base.thresholds), len(first.creep))
     fits = []
     for st, dropped0 in [(start, [])] + alts:
-        if st is None:
+        # (a start with fewer creep elements than the first is not this structure's: rig-d3-137, a
+        # creep start from the nominal sag with one element fewer, ended the diagnosis in an error)
+        if st is None or (name == "creep" and len(st.creep) < s_new.creep_order):
             continue
         free = _free(fitter, name, struct, s_new, dropped0)
         fr = fitter.fit(st, s_new, free=free, max_nfev=10, held=name in FAST)
@@ -462,8 +419,12 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             partial = (removed >= SHAPE_PARTIAL_REMOVED and SHAPE_PARTIAL_EXPLAINED <= explained < SHAPE_EXPLAINED
                        and not any(t["passed"] and t["name"] != "hysteresis_shape" for t in tried))
             asks = strong or (weak and not one_channel) or partial
+            # beside a mechanism already named, that mechanism's misfit (its model is not the
+            # device's) is other misfit the cells bend to (SHAPE_BESIDE_BEYOND, :mod:`.loopshape`)
+            beside = sorted(e for e in struct.effects if e != "hysteresis_shape")
+            far_enough = SHAPE_PARTIAL_BEYOND if partial else SHAPE_BESIDE_BEYOND if beside else SHAPE_BEYOND
             beyond = max(beyond_classical(fitter, best["fit"].params, noise).values()) if asks else 0.0
-            apart = beyond >= (SHAPE_PARTIAL_BEYOND if partial else SHAPE_BEYOND)
+            apart = beyond >= far_enough
             # (or, but for a partial one, further than the recalibrated loop from the nominal operators')
             further = (further_from_nominal(fitter, best["fit"].params, current, noise, p_base.thresholds)
                        if asks and not partial and not apart else None)
@@ -472,6 +433,8 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                        + ("" if further is None else f", {further:.2f} further from the nominal operators' "
                           "than the recalibrated loop") if asks else
                        f"; {100 * everywhere:.0f} % on its weakest channel" if one_channel else "")
+                if asks and beside and not partial and beyond >= SHAPE_BEYOND:   # (named as a loop alone)
+                    far += f"; beside {', '.join(beside)} it must lie {far_enough:g} x the noise from them"
                 step(f"round {rnd + 1}: the finer loop explains {100 * explained:.0f} % ({removed:.2f} x the "
                      f"noise{far}): an ordinary loop difference, taken into the recalibration (not named)")
                 struct, current = _refine(fitter, best, struct, p_base, recal, removed, explained, noise)
@@ -548,6 +511,19 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                           struct.n_params() - s_wo.n_params(), noise)
             ok = plausible(name, fitter, fr.params, current, cmp, cctx)
             passed, why = passes(cmp, name, ok)
+            if passed and name == "hysteresis_shape":
+                ordinary = loop_beside(fitter, current, fr.params, struct, noise, p_base.thresholds)
+                if ordinary is not None:
+                    # its cells stay in, as the recalibration's finer loop, but it is not named
+                    step(f"{name} is an ordinary loop difference once the others are in: {ordinary}")
+                    findings = [f for f in findings if f["name"] != name]
+                    rejected.append({"effect": name, "why": f"an ordinary loop difference once the others "
+                                                            f"are in: {ordinary}"})
+                    struct = struct.without(name).refine(struct.shape_extra)
+                    if recal is not None:
+                        recal.report["loop"] = {"operators": len(current.thresholds),
+                                                "kp_cells": current.n_cells, "refined": True}
+                    continue
             if not passed:
                 step(f"dropped {name}: {why}")
                 findings = [f for f in findings if f["name"] != name]
@@ -558,9 +534,10 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 for f in findings:
                     if f["name"] == name:
                         f["backward"] = cmp
-    if not fitter.out_of_time():
-        current, struct, findings = drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise,
-                                                    cctx, step)
+    # (a check of what was found, not a search: it runs when the budget is spent too; rig-d1-049
+    # and 161, a creep with a false drift beside it, reached the budget before it was made)
+    current, struct, findings = drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise,
+                                                cctx, step)
     accepted = {f["name"] for f in findings}
     for f in findings:
         # a rival that is itself accepted explained another part of the residual (two mechanisms),
