@@ -1326,6 +1326,25 @@ def test_a_drift_beside_creep_is_checked_after_the_search_budget_is_spent():
                for r in res["rejected"])
 
 
+def test_a_further_mode_must_beat_the_first_mode_there_by_the_naming_threshold(monkeypatch):
+    # rig-d2-126: a clean device (PI on other thresholds, 526 Hz sampling). A further mode at
+    # 215.8 Hz beat the device's first mode at that frequency by BIC 6.9 and was named: positive
+    # evidence (2) sufficed. The first mode there is ordinary physics, the account every name must
+    # beat by the naming threshold (10): recalibrated, and nothing is missing
+    from piezo_fmu.diagnose import rivals
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-d2-126")
+    assert rec.truth["mechanisms"] == [] and rec.truth["control"] is None
+    steps = []
+    res = analyse(raw, say=steps.append).result
+    assert res["final"]["effects"] == [] and res["final"]["verdict"].startswith("nothing is missing")
+    assert any("is the device's first mode" in m and "would gain BIC 6.9" in m for m in steps), steps
+    # positive evidence alone (the rule before): a false further mode
+    monkeypatch.setattr(rivals, "MODE_EVIDENCE", 2.0)
+    assert analyse(raw).result["final"]["effects"] == ["extra_resonance"]
+
+
 def test_a_cell_switched_only_in_a_held_out_block_is_left_out(monkeypatch):
     # rig-072: a 2-sample command latency on a device with PI hysteresis on other thresholds. The
     # record reaches its top voltage once, in a training block; the held-out block after it falls
