@@ -444,6 +444,8 @@ code{{background:#f6f6f6}}</style></head><body>
                 unc, absolute = v.get("relative_uncertainty"), v.get("uncertainty")
                 extra = " (not identified" + (f": {v['why']}" if v.get("why") else "") + ")" \
                     if v.get("identified") is False else ""
+                if v.get("determined") is False:
+                    extra += f" (not determined: {v['why_undetermined']})"
                 # an offset's uncertainty is in its own unit (the key's suffix: x_offset_um)
                 rows.append([e(k), e(_param_text({k: v["value"]})) + e(extra),
                              f"{100 * unc:.2g} %" if unc is not None else

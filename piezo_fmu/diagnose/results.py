@@ -16,6 +16,7 @@ from . import locate
 from .catalogue import CATALOGUE
 from .engine import model_from_params, predict
 from .recordings import HELDOUT_EVERY
+from .decide import at_bound
 from .select import ACCEPT, CONFIDENT
 from .stats import improvement_band, input_xcorr, tau_int, whiteness
 
@@ -297,7 +298,7 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
                      "nominal_as_given_rmse": nominal_as_given,
                      "structured_rms": base_struct_rms, "noise": noise,
                      "noise_ar1": noise_ar,
-                     "recalibrated": recal_summary(p_base, dev, dt, recal),
+                     "recalibrated": recal_summary(p_base, dev, dt, recal, fitter),
                      "structure": list(struct_nom.effects)},
         "localisation": loc_base,
         "findings": out_findings,
@@ -421,10 +422,49 @@ UNITS = {"x": "um", "us": "V"}
 ORDINARY = 2.0     # a structured residual up to this many noise rms, with nothing named, is ordinary misfit
 
 
-def recal_summary(p, dev, dt, recal):
+# a recalibrated value whose standard uncertainty exceeds this many times the value is not
+# determined by the recording (rig draw 3, stop 44's code: 123 of 185 recordings had such a value,
+# 57 besides the saturation; the amplifier lag of rig-d3-165 at 1.7e12 x its 0.1 ms, sampled at 264 Hz)
+UNDETERMINED = 1.0
+# the nonlinear ordinary parameters behind the report's keys
+# (the total lag of two stages is derived: it has no search range of its own)
+_REPORTED = {"amplifier_tau_s": "tau", "amplifier_tau2_s": "tau2", "amplifier_total_lag_s": None,
+             "first_mode_hz": "mech_f", "first_mode_zeta": "mech_zeta", "threshold_scale_V": "u_norm",
+             "saturation_um": "y_sat"}
+
+
+def _judge(out, fitter, p):
+    """Mark each recalibrated nonlinear value the recording does not determine (``determined``
+    false, with ``why_undetermined``): one at a bound of its search range (as a mechanism's parameter there is
+    never accepted, an ordinary one there is reported as such) or one whose standard uncertainty
+    exceeds ``UNDETERMINED`` x the value. Values not fitted (no uncertainty) are left as they are."""
+    for key, name in _REPORTED.items():
+        v = out.get(key)
+        if not isinstance(v, dict) or v.get("relative_uncertainty") is None or v["value"] <= 0:
+            continue
+        edge = at_bound(fitter, p, [name]) if fitter is not None and name is not None else []
+        u = v["relative_uncertainty"]
+        if edge:
+            lo, hi = edge[0]["range"]
+            end = "lower" if math.log(v["value"] / lo) < math.log(hi / v["value"]) else "upper"
+            unit = {"s": " s", "hz": " Hz", "V": " V", "um": " um"}.get(key.rsplit("_", 1)[-1], "")
+            v.update(determined=False, search_range=[lo, hi],
+                     why_undetermined=f"at the {end} end of its search range {lo:.4g}-{hi:.4g}{unit}: the "
+                                      "recording does not place it inside")
+        elif u > UNDETERMINED:
+            v.update(determined=False,
+                     why_undetermined=f"its standard uncertainty is {u:.2g} x the value: the recording "
+                                      "does not determine it")
+        else:
+            v["determined"] = True
+    return out
+
+
+def recal_summary(p, dev, dt, recal, fitter=None):
     """The recalibrated ordinary physics, each value with its unit and its standard uncertainty:
     relative for the nonlinear ones fitted, the loop's scale and the sensor's sensitivity; in the
-    value's unit for the offsets."""
+    value's unit for the offsets. With ``fitter``, each nonlinear value also says whether the
+    recording determines it (:func:`_judge`); with two lag stages the total lag is reported too."""
     unc = recal.report.get("uncertainty", {}) if recal else {}
     lin = recal.report.get("uncertainty_linear", {}) if recal else {}
     rep = recal.report if recal else {}
@@ -438,6 +478,9 @@ def recal_summary(p, dev, dt, recal):
         "amplifier_tau_s": {"value": val(p.tau), "relative_uncertainty": unc.get("tau")},
         "amplifier_order": rep.get("amplifier_order", {}).get("value", 2 if p.tau2 > 0 else 1),
         "amplifier_tau2_s": {"value": val(p.tau2), "relative_uncertainty": unc.get("tau2")},
+        **({"amplifier_total_lag_s": {"value": val(p.tau + p.tau2), "relative_uncertainty": unc.get("tau+tau2"),
+                                      "meaning": "tau + tau2: the two stages' lag together"}}
+           if p.tau2 > 0 else {}),
         "first_mode_hz": {"value": val(f1), "relative_uncertainty": unc.get("mech_f"),
                           "identified": rep.get("first_mode", {}).get("identified", False),
                           **({"why": rep["first_mode"]["why"]} if "why" in rep.get("first_mode", {}) else {})},
@@ -469,7 +512,7 @@ def recal_summary(p, dev, dt, recal):
                              if loop.get("refined") else ""),
                  "refined": False, **loop},
     }
-    return out
+    return _judge(out, fitter, p)
 
 
 def describe_parameters(name, p, dev, dt):

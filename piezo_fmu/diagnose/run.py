@@ -232,7 +232,8 @@ def _analyse(raw, model, say, max_rounds, time_budget_s):
             p_base = fr.params
         struct_nom = struct_base
     names = ordinary_names(fitter, recal, struct_nom)
-    if set(names) != set(recal.report.get("uncertainty", {})):
+    # ("tau+tau2", the total lag, is derived from the stages' covariance, not a parameter of its own)
+    if set(names) != {k for k in recal.report.get("uncertainty", {}) if k != "tau+tau2"}:
         # ordinary items found during the selection (a first mode, a second lag stage): their
         # uncertainty at the recalibrated nominal model, as for those found before it
         recal.report["uncertainty"] = uncertainty(fitter, p_base, struct_nom, names)

@@ -1,0 +1,92 @@
+"""The recalibrated ordinary physics says which of its values the recording determines.
+
+A recalibrated value at a bound of its search range, or with a standard uncertainty larger than
+the value, is reported as not determined (``determined`` false, ``why_undetermined``), in
+diagnosis.json and in report.html; with two amplifier lag stages the total lag is reported with
+its own uncertainty (the stages' covariance), which a record may determine when it cannot split it.
+"""
+import math
+
+import pytest
+
+from piezo_fmu.diagnose.results import UNDETERMINED
+
+NONLINEAR = ("amplifier_tau_s", "amplifier_tau2_s", "amplifier_total_lag_s", "first_mode_hz", "first_mode_zeta",
+             "threshold_scale_V", "saturation_um")
+
+
+def _rig(case_id):
+    from piezo_fmu import rig
+    from piezo_fmu.diagnose.run import analyse
+
+    draw = int(case_id.split("-")[1][1:]) if case_id.startswith("rig-d") else 0
+    rec = rig.generate(next(s for s in rig.cases(draw=draw) if s.case_id == case_id))
+    d = analyse([{"name": case_id, "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}])
+    return rec.truth["params"], d
+
+
+def _check_judged(rc):
+    """Every fitted nonlinear value carries a judgement that follows from its own numbers."""
+    judged = 0
+    for key in NONLINEAR:
+        v = rc.get(key)
+        if not isinstance(v, dict) or v.get("relative_uncertainty") is None or v["value"] <= 0:
+            continue
+        judged += 1
+        assert "determined" in v, (key, v)
+        at_bound = "search_range" in v
+        if at_bound:
+            lo, hi = v["search_range"]               # (value and range each rounded to 5-6 digits)
+            assert lo * (1 - 1e-4) <= v["value"] <= hi * (1 + 1e-4), (key, v)
+            assert min(abs(math.log(v["value"] / lo)), abs(math.log(hi / v["value"]))) <= 0.01 * math.log(hi / lo)
+        assert v["determined"] is (not at_bound and v["relative_uncertainty"] <= UNDETERMINED), (key, v)
+        assert ("why_undetermined" in v) is (not v["determined"]), (key, v)
+    return judged
+
+
+def test_a_lag_the_recording_cannot_resolve_is_reported_as_not_determined(tmp_path):
+    # rig-d3-165: a 0.62 ms amplifier lag sampled at 264 Hz (3.8 ms a sample) behind a current limit.
+    # The recalibrated lag (0.10 ms, 1.7e12 x its value as standard uncertainty, stop 44) is six times
+    # off the truth: it is reported as not determined, with the reason, in the json and the html
+    from piezo_fmu.diagnose.report import write_outputs
+
+    truth, d = _rig("rig-d3-165")
+    rc = d.result["baseline"]["recalibrated"]
+    assert _check_judged(rc) >= 2
+    tau = rc["amplifier_tau_s"]
+    assert abs(math.log(tau["value"] / truth["amplifier.tau_output"]["value"])) > math.log(2), tau
+    assert tau["determined"] is False and "does not determine" in tau["why_undetermined"], tau
+    write_outputs(d, tmp_path / "out", figures=False)
+    html = (tmp_path / "out" / "report.html").read_text()
+    assert html.count("not determined:") == sum(1 for k in NONLINEAR if rc.get(k, {}).get("determined") is False)
+
+
+def test_two_lag_stages_report_their_total_lag():
+    # rig-d3-017: a two-stage amplifier (1.70 ms after 0.84 ms, 2.54 ms in all) at 1.22 kHz with a
+    # thermal drift. The record cannot split the lag between the stages (stop 45: 1.89 and 0.48 ms, at
+    # 1.1 and 3.8 x their values) but fixes their sum: the total lag, with the uncertainty from the
+    # stages' covariance (0.47), is determined and lies near the true sum
+    truth, d = _rig("rig-d3-017")
+    rc = d.result["baseline"]["recalibrated"]
+    _check_judged(rc)
+    assert rc["amplifier_order"] == 2
+    one, two, total = rc["amplifier_tau_s"], rc["amplifier_tau2_s"], rc["amplifier_total_lag_s"]
+    assert one["determined"] is False and two["determined"] is False, (one, two)
+    assert total["determined"] is True, total
+    assert total["value"] == pytest.approx(one["value"] + two["value"], rel=1e-4)
+    true_total = truth["amplifier.tau_output"]["value"] + truth["amplifier.tau_internal"]["value"]
+    assert abs(total["value"] / true_total - 1) < 0.2, (total, true_total)
+
+
+def test_a_lag_the_recording_resolves_is_reported_as_determined():
+    # the project's own model, clean, under steps and sines at 2 kHz: its amplifier lag is fitted
+    # within a few per cent and reported as determined
+    from piezo_fmu.diagnose.run import analyse
+    from piezo_fmu.diagnose.synth import make_case
+
+    case = make_case(31, [], "low", ["steps", "sines"], fs=2000.0)
+    rc = analyse([{"name": "clean", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]).result[
+        "baseline"]["recalibrated"]
+    assert _check_judged(rc) >= 1
+    tau = rc["amplifier_tau_s"]
+    assert tau["determined"] is True and tau["relative_uncertainty"] < 0.5, tau
