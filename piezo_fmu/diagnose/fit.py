@@ -419,13 +419,6 @@ class Fitter:
         c0 = self.cost(start)
         if c0 < c:
             p, c = start, c0
-        # the start as it came (its weights solved before): re-solving may not reach it again when
-        # the saturation's Gauss-Newton steps go astray (rig-d4-008: the recalibrated model's
-        # training cost 2.9e5 as given, 2.9e11 with its weights re-solved and after the fit)
-        c_given = self.cost(p0)
-        if c_given < c:
-            self.say(f"a fit ended at training cost {c:.5g}, above its start's {c_given:.5g}: the start is kept")
-            p, c = p0.copy(), c_given
         return FitResult(p, struct, c, nfev, time.perf_counter() - t0)
 
     def _fit(self, p0: Params, struct: Structure, free, max_nfev, ftol, held):
