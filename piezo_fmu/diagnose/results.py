@@ -14,9 +14,9 @@ import numpy as np
 
 from . import locate
 from .catalogue import CATALOGUE
+from .decide import at_bound
 from .engine import model_from_params, predict
 from .recordings import HELDOUT_EVERY
-from .decide import at_bound
 from .select import ACCEPT, CONFIDENT
 from .stats import improvement_band, input_xcorr, tau_int, whiteness
 
@@ -446,9 +446,10 @@ _REPORTED = {"amplifier_tau_s": "tau", "amplifier_tau2_s": "tau2", "amplifier_to
 
 def _judge(out, fitter, p):
     """Mark each recalibrated nonlinear value the recording does not determine (``determined``
-    false, with ``why_undetermined``): one at a bound of its search range (as a mechanism's parameter there is
-    never accepted, an ordinary one there is reported as such) or one whose standard uncertainty
-    exceeds ``UNDETERMINED`` x the value. Values not fitted (no uncertainty) are left as they are."""
+    false, with ``why_undetermined``): one at a bound of its search range (a mechanism's parameter
+    there is never accepted; an ordinary one there is reported as such) or one whose standard
+    uncertainty exceeds ``UNDETERMINED`` x the value. Values not fitted (no uncertainty) are left
+    as they are."""
     for key, name in _REPORTED.items():
         v = out.get(key)
         if not isinstance(v, dict) or v.get("relative_uncertainty") is None or v["value"] <= 0:
