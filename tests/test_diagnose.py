@@ -812,7 +812,7 @@ def test_a_further_mode_is_screened_with_the_first_mode_searched_again(monkeypat
         assert found["parameters"]["f_n_Hz"] == pytest.approx(truth["extra_resonance.f"]["value"], rel=0.01), case
         assert res["final"]["rmse"]["x"] < 0.5 * res["baseline"]["rmse"]["x"], case
     # rig-d5-000 with the first mode left where the recalibration put it (the rule before)
-    monkeypatch.setattr(catalogue, "_first_mode_searched", lambda fitter, q, ctx: q)
+    monkeypatch.setattr(catalogue, "_first_mode_searched", lambda fitter, q, ctx: (fitter.quick(q), q))
     rec, raw = _rig_recording("rig-d5-000")
     assert "extra_resonance" not in analyse(raw).result["final"]["effects"]
 
@@ -1277,14 +1277,16 @@ def test_a_delay_beside_a_true_first_mode_is_found_without_the_second_lag_stage(
     assert analyse(raw).result["final"]["effects"] == []
 
 
-def test_a_finer_loop_on_one_channel_only_is_no_loop_shape(monkeypatch):
+def test_a_further_mode_and_leakage_leave_no_finer_loop_to_refuse():
     # rig-136: a 160 Hz mode and sensor leakage, the amplifier's two stages (0.9 + 0.4 ms)
-    # recalibrated as one lag of 5.0 ms. Once a cached stroke made the screening cost less work, a
-    # third round fitted a finer loop that explains 80 % of the displacement's structured residual
-    # (removing 1.01 noise rms, its loop 3.04 noise rms from every classical PI loop) and 22 % of the
-    # sensor's. A loop shape is the stroke's and shows on every channel that sees the stroke: on
-    # the weaker evidence (under 3 noise rms removed) the loop must explain 70 % on each
-    from piezo_fmu.diagnose import select
+    # recalibrated as one lag of 5.0 ms. Until stop 45 the mode's fit left the displacement's
+    # misfit to a third round, where a finer loop explained 80 % of it (1.01 noise rms) and 22 % of
+    # the sensor's; the rule that a loop shape on the weaker evidence must explain 70 % on every
+    # channel (select.SHAPE_EXPLAINED_EACH) kept it from being named, and the residual stayed
+    # "unexplained". With the first mode searched again under the further mode's starts (stop 46)
+    # the mode and the leakage take it all: the training cost after the leakage is 1421 where it
+    # was 4156, and no band is left unexplained. (That rule has no witness since: on 17 cases of
+    # rig draws 0, 4, 5 and 6 where it refuses a loop, switching it off names nothing else.)
     from piezo_fmu.diagnose.run import analyse
 
     rec, raw = _rig_recording("rig-136")
@@ -1292,10 +1294,10 @@ def test_a_finer_loop_on_one_channel_only_is_no_loop_shape(monkeypatch):
     steps = []
     res = analyse(raw, say=steps.append).result
     assert res["final"]["effects"] == ["extra_resonance", "sensor_leakage"], (res["candidates"], res["rejected"])
-    assert any("22 % on its weakest channel" in m and "not named" in m for m in steps), steps
-    # judged on its best channel alone (the rule before): a false loop shape
-    monkeypatch.setattr(select, "SHAPE_EXPLAINED_EACH", 0.0)
-    assert "hysteresis_shape" in analyse(raw).result["final"]["effects"]
+    assert not any("finer loop" in m and "not named" in m for m in steps), [m for m in steps if "finer loop" in m]
+    assert res["unexplained"] == [], res["unexplained"]
+    noise = res["baseline"]["noise"]
+    assert all(res["final"]["structured_rms"][c] < 1.0 * noise[c] for c in noise), (res["final"]["structured_rms"], noise)
 
 
 def test_a_loop_beside_a_named_mechanism_must_lie_further_from_the_classical_ones(monkeypatch):

@@ -161,16 +161,19 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
         places = ("output", "drive") if "us" in chans else ("output",)
         scored = sorted((fitter.quick(_with(p, res=(f, z), res_at=at)), f, z, at)
                         for f in fs for z in (0.005, 0.015, 0.06) for at in places)
-        starts = [_with(p, res=(f, z), res_at=at) for _, f, z, at in scored[:3]]
+        starts = [(c, _with(p, res=(f, z), res_at=at)) for c, f, z, at in scored[:3]]
         # a further mode the recalibrated first mode had bent to: the first mode is no longer
         # where it settled (rig-d5-000: a 205 Hz mode left the first mode at 997 Hz, zeta 0.13,
         # for a true 484 Hz, 0.035; from the peak alone the screening was 3.8 x worse than
         # without the mode, with the first mode re-searched 0.13 x): each residual peak is
-        # screened with the first mode re-searched
-        starts += [_first_mode_searched(fitter, _with(p, res=(f, 0.015), res_at=at), ctx)
-                   for f in _distinct(pk for pk in ctx.get("peaks", []) if 5.0 < pk < fmax) for at in places]
+        # screened with the first mode re-searched (the best MODE_RESEARCH_PEAKS of them: the search
+        # is the screening's largest cost on long records)
+        at_peaks = sorted(((fitter.quick(q), i, q) for i, q in enumerate(
+            _with(p, res=(f, 0.015), res_at=at) for f in _distinct(pk for pk in ctx.get("peaks", [])
+                                                                    if 5.0 < pk < fmax) for at in places)))
+        starts += [_first_mode_searched(fitter, q, ctx) for _, _, q in at_peaks[:MODE_RESEARCH_PEAKS]]
         best, best_c = None, math.inf
-        for q0 in sorted(starts, key=fitter.quick)[:3]:
+        for _, _, q0 in sorted((c, i, q) for i, (c, q) in enumerate(starts))[:3]:
             q, c = _lag_searched(fitter, q0, struct, p.tau)
             if c < best_c:
                 best, best_c = q, c
@@ -203,8 +206,8 @@ def swapped_mode(fitter: Fitter, p, struct: Structure, ctx):
     # with a light damping (rig-d5-168: the first mode taken at a 292 Hz further mode, its own
     # 499 Hz ringing left in the residual, 1.7 x: between the multiples)
     restarts = [(f1 * k, 0.05) for k in MODE_SWAP_STARTS] + [
-        (pk, z) for pk in _distinct(ctx.get("peaks", [])) if abs(math.log(pk / f1)) > math.log(1.1)
-        and lo < pk < hi for z in (0.015, 0.05)]
+        (pk, 0.015) for pk in _distinct(ctx.get("peaks", [])) if abs(math.log(pk / f1)) > math.log(1.1)
+        and lo < pk < hi]
     starts = []
     for f, z in restarts:
         for pick in (("contact", "load") if "us" in ctx["channels"] else ("stack",)):
@@ -220,8 +223,9 @@ def swapped_mode(fitter: Fitter, p, struct: Structure, ctx):
 
 # the first mode re-searched under a further mode's start: at these multiples of where it was and
 # at the residual's peaks (light and moderate damping), the best by the screening's cost
-MODE_RESEARCH = (0.25, 0.4, 0.5, 0.63, 0.8, 1.25, 1.6, 2.0, 2.5, 4.0)
+MODE_RESEARCH = (0.25, 0.4, 0.5, 0.63, 0.8, 1.25, 1.6, 2.5, 4.0)
 MODE_RESEARCH_ZETA = (0.03, 0.1)
+MODE_RESEARCH_PEAKS = 2     # residual peaks (with a place) whose start gets the first mode re-searched
 
 
 def _distinct(freqs, rel=0.01):
@@ -234,10 +238,11 @@ def _distinct(freqs, rel=0.01):
 
 
 def _first_mode_searched(fitter: Fitter, q, ctx):
-    """``q`` (a further mode's start) with the recalibrated first mode moved to where the
-    screening's cost is least (:data:`MODE_RESEARCH`); ``q`` itself without a first mode."""
+    """``(cost, q)``: ``q`` (a further mode's start) with the recalibrated first mode moved to where
+    the screening's cost is least (:data:`MODE_RESEARCH`), and that cost; ``q`` itself without a
+    first mode."""
     if "mech_f" not in fitter.ordinary:
-        return q
+        return fitter.quick(q), q
     f1, z1 = q.mode(fitter.dev)
     lo, hi = fitter.bounds("mech_f")
     fres = q.res[0]
@@ -253,7 +258,7 @@ def _first_mode_searched(fitter: Fitter, q, ctx):
             c = fitter.quick(r)
             if c < best_c:
                 best, best_c = r, c
-    return best
+    return best_c, best
 
 
 def _lag_searched(fitter: Fitter, q, struct: Structure, tau):
