@@ -792,12 +792,12 @@ def test_a_further_mode_is_screened_with_the_first_mode_searched_again(monkeypat
     # device's own at 484 Hz (zeta 0.035). The recalibration bent the first mode to 997 Hz, zeta
     # 0.13, and from there a mode at the residual's 205 Hz peak screened 3.8 x worse than none:
     # never fitted, nothing named with 3.4 noise rms left in x. Each peak is now screened with the
-    # first mode searched again (catalogue.MODE_RESEARCH). rig-d5-168: the recalibration took the
+    # first mode searched again (starts.MODE_RESEARCH). rig-d5-168: the recalibration took the
     # further 292 Hz mode for the first mode; the device's own 499 Hz rang in the residual, 1.7 x
     # it, between the swap's restarts: the residual's peaks are restarts too, and the best three
     # have the lag the old mode had absorbed searched again (the true pair: 0.98 x the old cost
     # before that, 0.09 x after)
-    from piezo_fmu.diagnose import catalogue
+    from piezo_fmu.diagnose import starts
     from piezo_fmu.diagnose.run import analyse
 
     results = {}
@@ -812,7 +812,7 @@ def test_a_further_mode_is_screened_with_the_first_mode_searched_again(monkeypat
         assert found["parameters"]["f_n_Hz"] == pytest.approx(truth["extra_resonance.f"]["value"], rel=0.01), case
         assert res["final"]["rmse"]["x"] < 0.5 * res["baseline"]["rmse"]["x"], case
     # rig-d5-000 with the first mode left where the recalibration put it (the rule before)
-    monkeypatch.setattr(catalogue, "_first_mode_searched", lambda fitter, q, ctx: (fitter.quick(q), q))
+    monkeypatch.setattr(starts, "first_mode_searched", lambda fitter, q, ctx: (fitter.quick(q), q))
     rec, raw = _rig_recording("rig-d5-000")
     assert "extra_resonance" not in analyse(raw).result["final"]["effects"]
 

@@ -21,9 +21,10 @@ import numpy as np
 from ..core.preisach import grid_cells
 from .engine import amplifier_output, chain, lowpass, predict, trend
 from .fit import Fitter, Structure
+from .starts import further_mode_start, log_grid, with_params
 from .residuals import taken_in_holds
 
-__all__ = ["CATALOGUE", "Mechanism", "plausible", "propose", "swapped_mode"]
+__all__ = ["CATALOGUE", "Mechanism", "plausible", "propose"]
 
 
 @dataclass(frozen=True)
@@ -89,10 +90,6 @@ CATALOGUE = {m.name: m for m in (
 )}
 
 
-def _log_grid(lo, hi, n):
-    return list(np.exp(np.linspace(math.log(lo), math.log(hi), n)))
-
-
 def propose(name, fitter: Fitter, p, struct: Structure, ctx):
     """Screen candidate ``name`` on a coarse grid (weights held); return the best start or ``None``."""
     dt, T = fitter.dt, fitter.duration
@@ -103,7 +100,7 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
             return None
         # one element more than now (or, from none, one or two at once: creep that spans decades,
         # logarithmic in time, needs both); every element re-screened (taus on a grid, gains solved)
-        taus = _log_grid(max(0.005, 10 * dt), 2.0 * T, 13)
+        taus = log_grid(max(0.005, 10 * dt), 2.0 * T, 13)
         more = [c for c in itertools.combinations(taus, max(struct.creep_order + 1, 2))
                 if all(b / a >= 2.5 for a, b in zip(c, c[1:]))]
         sets = ([(t,) for t in taus] + more) if struct.creep_order == 0 else more
@@ -123,7 +120,7 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
     if name == "sensor_leakage":
         if "us" not in chans or math.isfinite(p.tau_leak):
             return None
-        grid = [{"tau_leak": tau} for tau in _log_grid(max(0.02, 20 * dt), 50 * T, 12)]
+        grid = [{"tau_leak": tau} for tau in log_grid(max(0.02, 20 * dt), 50 * T, 12)]
         best, _ = fitter.grid(p, grid)
         return best
     if name == "amplifier_current_limit":
@@ -132,10 +129,10 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
         # a current limit slows the steps the lag had been fitted to: faster lags with it too
         grid = []
         for k in (1.0, 0.4, 0.15, 0.06):
-            q = _with(p, tau=max(p.tau * k, fitter.bounds("tau")[0]), tau2=p.tau2 * k)
+            q = with_params(p, tau=max(p.tau * k, fitter.bounds("tau")[0]), tau2=p.tau2 * k)
             rmax = max(float(np.max(np.abs(np.diff(amplifier_output(r, fitter.dev, q))))) / r.dt
                        for r in fitter.recs)
-            grid += [{"slew": s, "tau": q.tau, "tau2": q.tau2} for s in _log_grid(0.02 * rmax, 0.9 * rmax, 10)]
+            grid += [{"slew": s, "tau": q.tau, "tau2": q.tau2} for s in log_grid(0.02 * rmax, 0.9 * rmax, 10)]
         # the weights re-solved at every point: a lag fitted to slew-limited steps bends the loop
         best, _ = fitter.grid(p, grid, solve=struct.with_effect(name))
         return best
@@ -147,37 +144,7 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
         searches = [_delay_search(fitter, p, struct, dt, both) for both in ((False, True) if p.tau2 > 0 else (False,))]
         return min(searches, key=lambda qc: qc[1])[0]
     if name == "extra_resonance":
-        if p.res is not None:
-            return None
-        fmax = 0.45 / dt
-        fs = _log_grid(10.0, fmax, 12)
-        for pk in ctx.get("peaks", []):
-            if 5.0 < pk < fmax:
-                # a fine comb around each peak of the residual: a lightly damped mode is narrow
-                fs += [pk * (1 + 0.004 * k) for k in range(-3, 4)]
-        # the mode adds phase lag below f_n that the amplifier lag had absorbed: the best grid
-        # points get their lag re-searched
-        # where it acts: after the mechanics (displacement) or on the drive (every channel)
-        places = ("output", "drive") if "us" in chans else ("output",)
-        scored = sorted((fitter.quick(_with(p, res=(f, z), res_at=at)), f, z, at)
-                        for f in fs for z in (0.005, 0.015, 0.06) for at in places)
-        starts = [(c, _with(p, res=(f, z), res_at=at)) for c, f, z, at in scored[:3]]
-        # a further mode the recalibrated first mode had bent to: the first mode is no longer
-        # where it settled (rig-d5-000: a 205 Hz mode left the first mode at 997 Hz, zeta 0.13,
-        # for a true 484 Hz, 0.035; from the peak alone the screening was 3.8 x worse than
-        # without the mode, with the first mode re-searched 0.13 x): each residual peak is
-        # screened with the first mode re-searched (the best MODE_RESEARCH_PEAKS of them: the search
-        # is the screening's largest cost on long records)
-        at_peaks = sorted(((fitter.quick(q), i, q) for i, q in enumerate(
-            _with(p, res=(f, 0.015), res_at=at) for f in _distinct(pk for pk in ctx.get("peaks", [])
-                                                                    if 5.0 < pk < fmax) for at in places)))
-        starts += [_first_mode_searched(fitter, q, ctx) for _, _, q in at_peaks[:MODE_RESEARCH_PEAKS]]
-        best, best_c = None, math.inf
-        for _, _, q0 in sorted((c, i, q) for i, (c, q) in enumerate(starts))[:3]:
-            q, c = _lag_searched(fitter, q0, struct, p.tau)
-            if c < best_c:
-                best, best_c = q, c
-        return best
+        return None if p.res is not None else further_mode_start(fitter, p, struct, ctx)
     if name == "thermal_drift":
         if "x" not in chans or "thermal_drift" in struct.effects:
             return None
@@ -194,79 +161,6 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
     return None
 
 
-def swapped_mode(fitter: Fitter, p, struct: Structure, ctx):
-    """A further mode where the recalibrated first mode is (rig-119: a 148 Hz mode in series taken for
-    it), the first mode restarted at ``MODE_SWAP_STARTS`` times it, each pick-off and place: the best
-    start by the screening's cost, lag re-searched; ``None`` without a first mode or with a further one."""
-    if "mech_f" not in fitter.ordinary or p.res is not None:
-        return None
-    f1, z1 = p.mode(fitter.dev)
-    lo, hi = fitter.bounds("mech_f")
-    # the first mode restarted at multiples of the old one, and at each residual peak away from it
-    # with a light damping (rig-d5-168: the first mode taken at a 292 Hz further mode, its own
-    # 499 Hz ringing left in the residual, 1.7 x: between the multiples)
-    restarts = [(f1 * k, 0.05) for k in MODE_SWAP_STARTS] + [
-        (pk, 0.015) for pk in _distinct(ctx.get("peaks", [])) if abs(math.log(pk / f1)) > math.log(1.1)
-        and lo < pk < hi]
-    starts = []
-    for f, z in restarts:
-        for pick in (("contact", "load") if "us" in ctx["channels"] else ("stack",)):
-            for at in (("output", "drive") if "us" in ctx["channels"] else ("output",)):
-                q = _with(p, res=(f1, z1), res_at=at, pick=pick)
-                q.set_mode(fitter.dev, f=float(np.clip(f, lo * 1.02, hi / 1.02)), zeta=z)
-                starts.append((fitter.quick(q), len(starts), q))
-    # the lag the old first mode had absorbed decides between them: the best three re-searched
-    # (rig-d5-168: the true pair screened 0.98 x the old model's cost before and 0.09 x after)
-    return min((_lag_searched(fitter, q, struct, p.tau) for _, _, q in sorted(starts)[:3]),
-               key=lambda qc: qc[1])[0]
-
-
-# the first mode re-searched under a further mode's start: at these multiples of where it was and
-# at the residual's peaks (light and moderate damping), the best by the screening's cost
-MODE_RESEARCH = (0.25, 0.4, 0.5, 0.63, 0.8, 1.25, 1.6, 2.5, 4.0)
-MODE_RESEARCH_ZETA = (0.03, 0.1)
-MODE_RESEARCH_PEAKS = 2     # residual peaks (with a place) whose start gets the first mode re-searched
-
-
-def _distinct(freqs, rel=0.01):
-    """The frequencies [Hz] ``freqs``, sorted, those within ``rel`` of a kept one left out."""
-    out = []
-    for f in sorted(freqs):
-        if not out or f > out[-1] * (1 + rel):
-            out.append(float(f))
-    return out
-
-
-def _first_mode_searched(fitter: Fitter, q, ctx):
-    """``(cost, q)``: ``q`` (a further mode's start) with the recalibrated first mode moved to where
-    the screening's cost is least (:data:`MODE_RESEARCH`), and that cost; ``q`` itself without a
-    first mode."""
-    if "mech_f" not in fitter.ordinary:
-        return fitter.quick(q), q
-    f1, z1 = q.mode(fitter.dev)
-    lo, hi = fitter.bounds("mech_f")
-    fres = q.res[0]
-    fs = [f1 * k for k in MODE_RESEARCH] + [pk for pk in _distinct(ctx.get("peaks", []))
-                                            if abs(math.log(pk / fres)) > math.log(1.1)]
-    best, best_c = q, fitter.quick(q)
-    for f in fs:
-        if not lo < f < hi:
-            continue
-        for z in MODE_RESEARCH_ZETA:
-            r = q.copy()
-            r.set_mode(fitter.dev, f=f, zeta=z)
-            c = fitter.quick(r)
-            if c < best_c:
-                best, best_c = r, c
-    return best_c, best
-
-
-def _lag_searched(fitter: Fitter, q, struct: Structure, tau):
-    """``(q, cost)``: a mode's start, the lag it had absorbed re-searched in ``tau`` / 5 .. 2 ``tau``."""
-    return fitter.fit_scalar(q, struct, "tau", quick=True,
-                             bounds=(max(fitter.bounds("tau")[0], tau / 5), tau * 2), xatol=0.03)
-
-
 # creep is the slow motion after input changes: its slowest Kelvin element is at least this slow [s]
 # (rig creep is logarithmic from t0 = 5-200 ms: fits to it pair an element of 8-600 ms with a
 # slower one; a lone element of 3 ms on a clean Bouc-Wen device, rig-140, was the loop's
@@ -277,7 +171,6 @@ CREEP_SLOWEST_S = 0.05
 # on rig-004, rig-040 and the clean rig-125, each reshaping the first mode's response, 0.001-0.010)
 MODE_OWN_BAND = 0.1
 MODE_BAND_WIDTH = 1.25   # that band: f_n / width .. f_n * width
-MODE_SWAP_STARTS = (0.4, 0.63, 1.6, 2.5, 4.0, 6.3)   # first mode restarted at these x the old one
 MODE_SWAP_EXPLAINED = 0.8   # the share of the structured residual such a further mode must explain
 MODE_LIGHT = 0.15           # a mode's damping ratio up to which it rings (above: it only adds phase lag)
 # a thermal drift goes on while the command holds still: there the residual must take at least
@@ -350,13 +243,6 @@ def _supported(fitter: Fitter, q, n):
 def shape_size(p, nominal_thresholds):
     """Linear parameters a finer loop adds to the nominal one: operators and KP cells."""
     return len(p.thresholds) - len(nominal_thresholds) + p.n_cells
-
-
-def _with(p, **kw):
-    q = p.copy()
-    for k, v in kw.items():
-        setattr(q, k, v)
-    return q
 
 
 def _delay_search(fitter: Fitter, p, struct, dt, both):

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 
-from .catalogue import CATALOGUE, plausible, propose, shape_size, swapped_mode
+from .catalogue import CATALOGUE, plausible, propose, shape_size
 from .decide import (CONFIDENT, at_bound, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score, told_apart)
 from .fit import Fitter, free_names, get_value, set_value, strip
@@ -36,6 +36,7 @@ from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, drop, present, without
 from .residuals import ACCEPT, full_residuals, residual_peaks, residual_sets
 from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, creep_before_drift, delay_or_lag, drift_both,
                      drift_or_creep, ordinary_found, physics_before_shape, resonance_or_mode)
+from .starts import swapped_mode
 from .stats import compare
 
 __all__ = ["ACCEPT", "CONFIDENT", "confidence", "full_residuals", "noise_levels", "put_in", "refine_delay",
