@@ -800,12 +800,11 @@ def test_a_further_mode_is_screened_with_the_first_mode_searched_again(monkeypat
     from piezo_fmu.diagnose import starts
     from piezo_fmu.diagnose.run import analyse
 
-    results = {}
     for case in ("rig-d5-000", "rig-d5-168"):
         rec, raw = _rig_recording(case)
         truth = rec.truth["params"]
         assert rec.truth["mechanisms"] == ["extra_resonance"]
-        res = results[case] = analyse(raw).result
+        res = analyse(raw).result
         assert res["final"]["effects"] == ["extra_resonance"], (case, res["rejected"])
         found = next(f for f in res["findings"] if f["effect"] == "extra_resonance")
         assert found["confidence"] >= 0.5

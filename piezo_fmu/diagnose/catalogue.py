@@ -21,8 +21,8 @@ import numpy as np
 from ..core.preisach import grid_cells
 from .engine import amplifier_output, chain, lowpass, predict, trend
 from .fit import Fitter, Structure
-from .starts import further_mode_start, log_grid, with_params
 from .residuals import taken_in_holds
+from .starts import further_mode_start, log_grid, with_params
 
 __all__ = ["CATALOGUE", "Mechanism", "plausible", "propose"]
 

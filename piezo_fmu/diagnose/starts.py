@@ -5,7 +5,8 @@ A lightly damped mode is narrow, and the recalibrated first mode may have bent t
 did not have (rig-d5-000: a 205 Hz mode pulled the first mode from 484 to 997 Hz) or be that further
 mode (rig-119, rig-d5-168): a start at the right frequency screens worse than no mode at all until
 the first mode and the lag it had absorbed are searched again. Used by :func:`.catalogue.propose`
-(``extra_resonance``) and :mod:`.select` (the swapped start); the grid helpers are the catalogue's.
+(``extra_resonance``) and :mod:`.select` (the swapped start). The grid helpers (:func:`log_grid`,
+:func:`with_params`) live here, below the catalogue, which screens its other mechanisms with them.
 """
 from __future__ import annotations
 
