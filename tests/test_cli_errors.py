@@ -111,6 +111,18 @@ def test_a_unit_that_cannot_be_converted_is_bad_input(tmp_path, capsys):
     assert not (tmp_path / "d" / "diagnosis.json").exists()
 
 
+@pytest.mark.parametrize("rate, words", [("0", "positive number, got 0"), ("-8000", "positive number, got -8000"),
+                                         ("fast", "number, got 'fast'"), ("inf", "positive number, got inf")])
+def test_a_replay_rate_that_is_not_a_positive_rate_is_bad_input(tmp_path, capsys, rate, words):
+    rec = tmp_path / "rec.csv"
+    rec.write_text("time,u,x\n" + "".join(f"{k * 1e-3},{k % 7},{k % 5}\n" for k in range(60)))
+    with pytest.raises(SystemExit) as exc:
+        main(["diagnose", str(rec), "--out", str(tmp_path / "d"), "--replay-rate", rate, "--quiet"])
+    assert exc.value.code == 2
+    assert f"--replay-rate must be a {words}" in capsys.readouterr().err
+    assert not (tmp_path / "d" / "diagnosis.json").exists()
+
+
 @pytest.mark.parametrize("command", [
     ["simulate", "--stop-time", "0.01"],
     ["reproduce", "--out", "{tmp}/r"],
@@ -252,6 +264,7 @@ def test_a_reader_that_goes_away_ends_the_command_quietly():
     (["--cases", "rig-017,foo-1"], ["foo-1", "no case of rig or synth"]),
     (["--generator", "synth", "--cases", "rig-017"], ["rig-017", "no case of synth"]),
     (["--draw", "-1"], ["--draw -1", "positive"]),
+    (["--replay-rate", "0"], ["--replay-rate 0", "positive"]),
 ])
 def test_the_evaluation_names_a_case_it_does_not_have(capsys, args, words):
     # a misspelt case name ran nothing and reported an empty table; now it is bad input

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import add_quiet, progress_for, say
+from .common import add_quiet, positive, progress_for, say
 
 __all__ = ["register", "summary"]
 
@@ -42,7 +42,8 @@ def cmd_diagnose(args):
     columns = parse_mapping(args.columns, "--columns")
     scale = parse_mapping(args.scale, "--scale", numeric=True)
     diag = diagnose(args.recordings, args.model, args.out, force=args.force, columns=columns or None,
-                    scale=scale or None, say=lambda msg: bar(None, msg), figures=not args.no_figures)
+                    scale=scale or None, say=lambda msg: bar(None, msg), figures=not args.no_figures,
+                    replay_rate=args.replay_rate)
     bar.close()
     print(summary(diag.result))
     say(args, f"wrote {args.out}/ (diagnosis.json, fit.csv, model.toml, report.html) in "
@@ -74,6 +75,11 @@ def register(sub):
                    help="map column names, e.g. --columns time=t,u=V_cmd,x=disp")
     p.add_argument("--scale", action="append", metavar="NAME=FACTOR,...",
                    help="multiply columns after reading, e.g. --scale x=1e6 (m -> um)")
+    p.add_argument("--replay-rate", type=positive("--replay-rate"), default=None, metavar="HZ",
+                   help="replay a recording sampled slower than HZ with several internal steps per sample "
+                        "(the amplifier's and the push rod's motion between the samples; e.g. 8000 for a "
+                        "recording at 1 kHz of a device with a sub-ms amplifier lag or a mode of a few "
+                        "hundred Hz). Default: one step per sample (faster)")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures (report without images)")
     add_quiet(p)

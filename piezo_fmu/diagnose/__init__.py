@@ -17,7 +17,7 @@ __all__ = ["diagnose"]
 
 
 def diagnose(recordings, model=None, out=None, *, force=False, columns=None, scale=None, say=None,
-             figures=True, time_budget_s=40.0):
+             figures=True, time_budget_s=40.0, replay_rate=None):
     """Diagnose recording files against a model; write the results into ``out`` when given.
 
     Parameters
@@ -42,6 +42,10 @@ def diagnose(recordings, model=None, out=None, *, force=False, columns=None, sca
         search is started (what was found stays; diagnosis.json says so); ``None``: no limit.
         Counted as work (samples simulated), not time, so the result does not depend on the
         machine or its load.
+    replay_rate : float, optional
+        Replay rate [Hz]: a recording sampled slower is replayed with several internal steps per
+        sample (the amplifier's and the mechanics' path between the samples); 8000 is the rate
+        measured on the rig (see :mod:`.recordings`). Default: one step per sample.
 
     Returns
     -------
@@ -58,7 +62,7 @@ def diagnose(recordings, model=None, out=None, *, force=False, columns=None, sca
         check_outputs(out, force)
     raw = load_recordings(recordings, columns, scale)
     base = load_model(model)
-    diag = analyse(raw, base, say=say, time_budget_s=time_budget_s)
+    diag = analyse(raw, base, say=say, time_budget_s=time_budget_s, replay_rate=replay_rate)
     if out is not None:
         t0 = time.perf_counter()
         write_outputs(diag, out, force=force, say=say, figures=figures)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.preisach import grid_cells
-from .engine import amplifier_output, chain, lowpass, predict, trend
+from .engine import amplifier_output, at_samples, chain, lowpass, predict, trend
 from .fit import Fitter, Structure
 from .residuals import taken_in_holds
 from .starts import further_mode_start, log_grid, with_params
@@ -130,7 +130,7 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
         grid = []
         for k in (1.0, 0.4, 0.15, 0.06):
             q = with_params(p, tau=max(p.tau * k, fitter.bounds("tau")[0]), tau2=p.tau2 * k)
-            rmax = max(float(np.max(np.abs(np.diff(amplifier_output(r, fitter.dev, q))))) / r.dt
+            rmax = max(float(np.max(np.abs(np.diff(amplifier_output(r, fitter.dev, q))))) / r.h
                        for r in fitter.recs)
             grid += [{"slew": s, "tau": q.tau, "tau2": q.tau2} for s in log_grid(0.02 * rmax, 0.9 * rmax, 10)]
         # the weights re-solved at every point: a lag fitted to slew-limited steps bends the loop
@@ -231,7 +231,7 @@ def _supported(fitter: Fitter, q, n):
     over the training rows; a cell switched on fewer than 20 x ``CELL_SUPPORT`` held-out rows stays."""
     on_tr = on_ho = 0.0
     for rp, r in zip(fitter.replays(q), fitter.recs):
-        zc = rp.z[n:]
+        zc = at_samples(r, rp.z[n:])
         moved = np.abs(zc - np.median(zc[:, r.train], axis=1)[:, None]) > 0.5
         on_tr = on_tr + moved[:, r.train].sum(axis=1)
         on_ho = on_ho + moved[:, r.heldout].sum(axis=1)
@@ -478,7 +478,8 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx):
         limited = 0
         for r in fitter.recs:
             ua = amplifier_output(r, fitter.dev, p_after)
-            limited += int(np.count_nonzero(np.abs(np.diff(ua)) >= 0.999 * slew * r.dt))
+            # internal steps at the limit, counted in samples
+            limited += int(np.count_nonzero(np.abs(np.diff(ua)) >= 0.999 * slew * r.h)) // r.oversample
         if limited < 3:
             return False, "the fitted current limit never binds"
         return True, f"binds on {limited} samples"

@@ -44,6 +44,7 @@ __all__ = [
     "Params",
     "Recording",
     "amplifier_output",
+    "at_samples",
     "cell_states",
     "chain",
     "device_from_model",
@@ -181,12 +182,26 @@ def _kernels():
 
 # -- pieces of the replay -------------------------------------------------------------------------
 
+def at_samples(rec: Recording, a: np.ndarray) -> np.ndarray:
+    """``a``, computed on ``rec``'s internal grid (``rec.oversample`` steps per sample), at the
+    recording's samples (the last axis).
+
+    The replay runs ``rec.oversample`` internal steps per sample, the command held over each
+    sample: what ``simulate`` computes with ``step = dt / oversample``, read at the samples. Between
+    the samples the stack voltage moves along its lag and the mechanics follow that path; at one
+    step per sample the path is taken as a straight line between the samples' strokes, which a lag
+    or a mode comparable to the sample interval is not (see :mod:`.recordings`)."""
+    m = rec.oversample
+    return a if m == 1 else a[..., ::m]
+
+
 def amplifier_output(rec: Recording, dev: Device, p: Params) -> np.ndarray:
-    """Stack voltage ``ua`` at every sample (sample 0: the device at rest, ua = 0)."""
+    """Stack voltage ``ua`` at every internal step (step 0: the device at rest, ua = 0)."""
     amp_run = _kernels()[0]
-    nd = int(round(p.delay / rec.dt)) if p.delay > 0 else 0
-    out = np.empty(rec.n)
-    return amp_run(rec.u, nd, dev.k_amp, p.tau, p.slew, dev.u_min, dev.u_max, rec.dt, float(p.tau2), out)
+    u = rec.u if rec.oversample == 1 else np.repeat(rec.u, rec.oversample)
+    nd = int(round(p.delay / rec.h)) if p.delay > 0 else 0
+    out = np.empty(u.size)
+    return amp_run(u, nd, dev.k_amp, p.tau, p.slew, dev.u_min, dev.u_max, rec.h, float(p.tau2), out)
 
 
 def initial_state(ua0: float, p: Params) -> np.ndarray:
@@ -423,8 +438,8 @@ def saturate(hx, y_sat):
 class Replay:
     """Intermediate signals of one recording for given dynamics (cached across linear solves)."""
 
-    z: np.ndarray                   # (N, n) operator outputs
-    ua: np.ndarray
+    z: np.ndarray                   # (N, n * oversample) operator outputs, at every internal step
+    ua: np.ndarray                  # stack voltage [V] at every internal step
 
 
 def replay(rec: Recording, dev: Device, p: Params) -> Replay:
@@ -443,9 +458,9 @@ def stroke(rec: Recording, dev: Device, p: Params, rp: Replay | None = None):
     v = ua / p.u_norm
     if not p.n_cells:
         return kern[2](v, np.asarray(p.thresholds, float), np.asarray(p.weights, float), y_inv,
-                       np.empty(rec.n), initial_state(float(ua[0]), p))
+                       np.empty(ua.size), initial_state(float(ua[0]), p))
     hx = kern[2](v, np.asarray(p.thresholds, float), np.asarray(p.weights, float), 0.0,
-                 np.empty(rec.n), initial_state(float(ua[0]), p))
+                 np.empty(ua.size), initial_state(float(ua[0]), p))
     relaxed, start = cell_states(float(ua[0]), p)
     kern[3](v, *(np.ascontiguousarray(c) for c in p.cells), start, relaxed, p.cell_weights(), hx[None, :])
     return saturate(hx, p.y_sat)
@@ -457,17 +472,18 @@ def predict(rec: Recording, dev: Device, p: Params, rp: Replay | None = None, di
 
     ``direct``: compute the weighted operator sum in one compiled pass (no operator matrix),
     for evaluations that do not need the operators themselves. ``hx``: the hysteretic stroke
-    [um] of ``p`` already computed (:func:`stroke`), only the linear chain after it is run.
+    [um] of ``p`` already computed (:func:`stroke`, at every internal step), only the linear chain
+    after it is run. ``ua`` and ``x_h`` are returned at the samples too.
     """
     if hx is None and direct and rp is None:
         hx = stroke(rec, dev, p)
     elif hx is None:
         rp = rp or replay(rec, dev, p)
         hx = stroke(rec, dev, p, rp)
-    force = chain(hx, "us", dev, p, rec.dt)
+    force = at_samples(rec, chain(hx, "us", dev, p, rec.h))
     if p.pick == "load" and (p.rate or p.curv):
         force = force + load_trend(rec.t, dev, p, rec.dt)
-    out = {"x": shift(chain(hx, "x", dev, p, rec.dt) + drift(rec.t, p), p.lag_x),
+    out = {"x": shift(at_samples(rec, chain(hx, "x", dev, p, rec.h)) + drift(rec.t, p), p.lag_x),
            "us": shift(p.S * force + p.off_s, p.lag_us),
-           "ua": rp.ua if rp is not None else None, "x_h": hx}
+           "ua": at_samples(rec, rp.ua) if rp is not None else None, "x_h": at_samples(rec, hx)}
     return out

@@ -1,7 +1,8 @@
 """Recognition studies: run diagnose blind on concealed recordings and count what it names.
 
 ``python -m piezo_fmu.diagnose.evaluate [--generator synth|rig|both] [--quick] [--draw K] [--jobs 2]
-[--scheduler tcp://HOST:PORT] [--only GROUPS] [--cases NAMES] [--ceiling] [--logs DIR] [--out eval.json]
+[--scheduler tcp://HOST:PORT] [--only GROUPS] [--cases NAMES] [--ceiling] [--logs DIR]
+[--replay-rate HZ] [--out eval.json]
 [--markdown table.md]``
 
 Two generators:
@@ -142,7 +143,7 @@ def _ceiling(diag, missed):
     return out
 
 
-def _diagnose(raw, truth=None, log=None):
+def _diagnose(raw, truth=None, log=None, replay_rate=None):
     """Diagnose ``raw`` blind; with ``truth`` (the visible true mechanisms, given only for the
     post-mortem, after the diagnosis is complete) also the ``ceiling`` of each miss. ``log``: a
     file the diagnosis's progress lines (every screening, fit and decision) are written to."""
@@ -155,7 +156,7 @@ def _diagnose(raw, truth=None, log=None):
     seconds = None
     lines = []
     try:
-        diag = analyse(raw, say=lines.append if log else None)
+        diag = analyse(raw, say=lines.append if log else None, replay_rate=replay_rate)
         seconds = time.perf_counter() - t0            # the diagnosis alone
         out = _outcome(diag.result)
         if truth is not None:
@@ -176,7 +177,7 @@ def _log_file(logs, name):
     return None if logs is None else str(Path(logs) / f"{name}.log")
 
 
-def run_case(spec, ceiling=False, logs=None):
+def run_case(spec, ceiling=False, logs=None, replay_rate=None):
     """One synth case: generate, diagnose blind, score against the truth (``ceiling``: and put each
     miss in afterwards, see :func:`_ceiling`; ``logs``: a folder for the diagnosis's progress log)."""
     from .synth import make_case
@@ -185,7 +186,7 @@ def run_case(spec, ceiling=False, logs=None):
                      channels=tuple(spec.get("channels", ("x", "us"))))
     raw = [{"name": f"case{spec['seed']}", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
     visible = [e for e in spec["effects"] if e in EFFECTS and case.truth["visibility"][e] >= VISIBLE]
-    out = _diagnose(raw, visible if ceiling else None, _log_file(logs, f"synth-{spec['seed']}"))
+    out = _diagnose(raw, visible if ceiling else None, _log_file(logs, f"synth-{spec['seed']}"), replay_rate)
     out["visibility"] = _visibility(spec, case)
     # a mechanism still below visibility at the end of its range is hidden, as in the rig: naming it
     # is no false name, missing it no miss
@@ -207,7 +208,7 @@ def rig_cases(quick=False, draw=0):
     return list(rig.cases(quick=quick, draw=draw))
 
 
-def run_rig_case(spec, ceiling=False, logs=None):
+def run_rig_case(spec, ceiling=False, logs=None, replay_rate=None):
     """One rig case: the rig generates it (its truth stays here), diagnose sees the recording only
     (``ceiling``: each miss is put in afterwards, see :func:`_ceiling`; ``logs``: a folder for the
     diagnosis's progress log)."""
@@ -215,7 +216,8 @@ def run_rig_case(spec, ceiling=False, logs=None):
 
     rec = rig.generate(spec)
     raw = [{"name": str(rec.truth.get("case_id", "case")), "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
-    out = _diagnose(raw, list(rec.truth.get("mechanisms", [])) if ceiling else None, _log_file(logs, spec.case_id))
+    out = _diagnose(raw, list(rec.truth.get("mechanisms", [])) if ceiling else None, _log_file(logs, spec.case_id),
+                    replay_rate)
     t = rec.truth
     params = t.get("params", {})                 # the device's own loop family and its shape feature
     shape = params.get("hysteresis_shape.variant", {}).get("value")
@@ -246,18 +248,19 @@ def _case_line(r, done, n, t0):
 
 
 def study(generator, quick=False, jobs=None, scheduler=None, only=None, log=None, ceiling=False, cases_=None,
-          draw=0, logs=None):
+          draw=0, logs=None, replay_rate=None):
     """Run one generator's cases; returns ``(summary, results)``. ``only``: case groups to run;
     ``cases_``: case names to run; ``ceiling``: put each miss in afterwards (:func:`_ceiling`);
     ``draw``: 0 the established set, k >= 1 the same composition on fresh seeds; ``logs``: a folder
-    each case's progress log is written to (``<case>.log``)."""
+    each case's progress log is written to (``<case>.log``); ``replay_rate`` [Hz]: see
+    :func:`.run.analyse`."""
     from ..parallel import map_as_completed
 
     make, run = GENERATORS[generator]
     if logs:
         logs = Path(logs).resolve()
         logs.mkdir(parents=True, exist_ok=True)
-    run = functools.partial(run, ceiling=ceiling, logs=None if logs is None else str(logs))
+    run = functools.partial(run, ceiling=ceiling, logs=None if logs is None else str(logs), replay_rate=replay_rate)
     specs = make(quick, draw)
     if only:
         keep = set(only)
@@ -299,9 +302,13 @@ def main(argv=None):
                          "tests on it: does the recording show it when the tool is told to look?")
     ap.add_argument("--logs", metavar="DIR", help="write each case's diagnosis log (every screening, fit and "
                                                  "decision) to DIR/<case>.log (on the machine that runs the case)")
+    ap.add_argument("--replay-rate", type=float, default=None, metavar="HZ",
+                    help="replay recordings sampled slower with internal steps up to HZ (diagnose --replay-rate)")
     ap.add_argument("--out", help="write all results as JSON")
     ap.add_argument("--markdown", help="write the tables as markdown")
     a = ap.parse_args(argv)
+    if a.replay_rate is not None and not a.replay_rate > 0:
+        ap.error(f"--replay-rate {a.replay_rate}: a positive rate in Hz")
     if a.draw < 0:
         ap.error(f"--draw {a.draw}: a draw is 0 (the established sets) or a positive number")
     gens = ("rig", "synth") if a.generator == "both" else (a.generator,)
@@ -319,7 +326,7 @@ def main(argv=None):
             s, results = study(gen, a.quick, a.jobs, a.scheduler, only,
                                log=lambda line: print(line, file=sys.stderr, flush=True), ceiling=a.ceiling,
                                cases_=[n for n in names if n.startswith(f"{gen}-")] if names else None,
-                               draw=a.draw, logs=a.logs)
+                               draw=a.draw, logs=a.logs, replay_rate=a.replay_rate)
         except ValueError as exc:
             ap.error(str(exc))
         report[gen] = {"summary": s, "results": results}

@@ -222,7 +222,7 @@ class Fitter:
         self.ordinary = ["tau"]  # ordinary nonlinear parameters fitted with every structure
         self.budget = math.inf   # work (see spend) after which no new search is started
         self.work = 0.0          # weighted samples simulated so far
-        self.n_samples = sum(r.t.size for r in recs)
+        self.n_samples = sum(r.n * r.oversample for r in recs)     # internal steps of one replay
         self.n_eval = 0
         self.n_eff = 1000.0      # effective sample size of the current residual (set by the recalibration)
 

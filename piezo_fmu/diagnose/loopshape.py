@@ -38,7 +38,7 @@ import math
 import numpy as np
 from scipy.optimize import nnls
 
-from .engine import operators, predict, stroke
+from .engine import at_samples, operators, predict, stroke
 from .fit import Fitter
 from .model_io import Params
 
@@ -148,14 +148,14 @@ def beyond_classical(fitter: Fitter, p: Params, noise: dict, thresholds=None) ->
     """
     hs, uas, gains = [], [], {c: [] for c in noise}
     for r, rp in zip(fitter.recs, fitter.replays(p)):
-        h = stroke(r, fitter.dev, p, rp)
+        h = at_samples(r, stroke(r, fitter.dev, p, rp))
         pred = predict(r, fitter.dev, p, rp)
         hc = h - h.mean()
         for c in noise:
             if pred.get(c) is not None and getattr(r, c) is not None and float(hc @ hc) > 0:
                 gains[c].append(abs(float((pred[c] - pred[c].mean()) @ hc) / float(hc @ hc)))
         hs.append(h)
-        uas.append(rp.ua)
+        uas.append(at_samples(r, rp.ua))
     span = max(float(ua.max()) for ua in uas) - min(min(float(ua.min()) for ua in uas), 0.0)
     if span <= 0 or not max(float(np.ptp(h)) for h in hs) > 0:
         return {c: 0.0 for c in noise}

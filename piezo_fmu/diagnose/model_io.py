@@ -146,10 +146,16 @@ class Recording:
     block: np.ndarray | None = None   # validation block of every sample
     sign: dict = field(default_factory=dict)   # channel -> +1/-1 (file = sign * model)
     split: str = ""          # how the held-out blocks were chosen (recordings.blocks)
+    oversample: int = 1      # internal steps of the replay per sample (see engine.at_samples)
 
     @property
     def n(self):
         return self.u.size
+
+    @property
+    def h(self):
+        """The replay's internal step [s]: ``dt / oversample``."""
+        return self.dt / self.oversample
 
     @property
     def train(self):

@@ -298,7 +298,9 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
                   "note": "values per channel (rmse, noise, rms, residuals) are in that channel's unit; every "
                           "other key names its unit (_s seconds, _hz hertz, _V volts, ...) or is dimensionless"},
         "recordings": [{"file": r.name, "samples": int(r.n), "dt_s": r.dt, "duration_s": float(r.t[-1]),
-                        "channels": r.channels(), "sign": r.sign} for r in recs],
+                        "channels": r.channels(), "sign": r.sign,
+                        "replay_step_s": float(f"{r.h:.6g}"), "replay_steps_per_sample": r.oversample}
+                       for r in recs],
         "baseline": {"rmse": base_rmse, "nrmse": nrmse(recs, base_rmse),
                      "nominal_as_given_rmse": nominal_as_given,
                      "structured_rms": base_struct_rms, "noise": noise,

@@ -77,18 +77,22 @@ WORK_PER_S = 1.2e7
 DIVERGED = 100.0
 
 
-def analyse(raw, model: Model | None = None, say=None, max_rounds=5, time_budget_s=TIME_BUDGET_S) -> Diagnosis:
+def analyse(raw, model: Model | None = None, say=None, max_rounds=5, time_budget_s=TIME_BUDGET_S,
+            replay_rate=None) -> Diagnosis:
     """Diagnose recordings in memory (``raw``: dicts name, time, u, x, us) against ``model``.
+
+    ``replay_rate`` [Hz]: replay a recording sampled slower with internal steps up to this rate
+    (:func:`.recordings.internal_steps`; default one step per sample).
 
     ``time_budget_s``: after the work of this many seconds on the reference machine no further
     candidate search is started (what was found stays; ``diagnosis.json`` says so under
     ``rejected``); ``None`` for no limit. Counted as work (``WORK_PER_S``), not time: the result
     does not depend on the machine or its load."""
     with single_thread(), kept():
-        return _analyse(raw, model, say, max_rounds, time_budget_s)
+        return _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate)
 
 
-def _analyse(raw, model, say, max_rounds, time_budget_s):
+def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     say = say or (lambda msg: None)
     t_start = time.perf_counter()
     timing = {}
@@ -97,7 +101,7 @@ def _analyse(raw, model, say, max_rounds, time_budget_s):
         say(f"[{time.perf_counter() - t_start:6.1f} s] {msg}")
 
     model = model or load_model()
-    recs = make_recordings(raw)
+    recs = make_recordings(raw, replay_rate)
     chans = sorted({c for r in recs for c in r.channels()})
     dev = device_from_model(model)
     p_nom = params_from_model(model, min(r.dt for r in recs))

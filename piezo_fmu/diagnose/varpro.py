@@ -15,7 +15,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.optimize import lsq_linear
 
-from .engine import chain, leak, predict, replay, saturate, shift
+from .engine import at_samples, chain, leak, predict, replay, saturate, shift
 from .model_io import Device, Params
 
 __all__ = ["residuals", "solve_linear"]
@@ -45,8 +45,8 @@ def _design(rec, dev, p, rp, lin_w, h0=None):
         cols = np.vstack([z * gp, c0[None, :]])
     else:
         cols = np.vstack([z, np.zeros((1, z.shape[1]))])
-    ax = shift(chain(cols, "x", dev, p, rec.dt), p.lag_x) if rec.x is not None else None
-    asf = shift(chain(cols, "us", dev, p, rec.dt), p.lag_us) if rec.us is not None else None
+    ax = shift(at_samples(rec, chain(cols, "x", dev, p, rec.h)), p.lag_x) if rec.x is not None else None
+    asf = shift(at_samples(rec, chain(cols, "us", dev, p, rec.h)), p.lag_us) if rec.us is not None else None
     return ax, asf
 
 
