@@ -135,6 +135,18 @@ def test_a_replay_rate_sets_the_internal_steps_of_slower_recordings():
         make_recordings(raw, replay_rate=-1.0)
 
 
+def test_a_replayed_recording_is_rerun_by_the_monolithic_model_with_the_same_step(tmp_path):
+    # fit.csv's x_final is model.toml re-run by simulate: with --replay-rate at the fit's finer step,
+    # so the check (simulate against the fitting engine) stays at round-off
+    case = make_case(1003, effects=("creep",), fs=1000.0, duration=3.0)
+    diag = run_blind(tmp_path, case, replay_rate=4000.0)
+    res = diag.result
+    assert res["recordings"][0]["replay_steps_per_sample"] == 4
+    assert res["check"]["simulate_vs_fit_max_abs"] < 1e-6 * np.ptp(case.x)
+    fit = read_fit_csv(tmp_path / "out" / "fit.csv")
+    assert fit["x_final"].size == case.x.size
+
+
 @pytest.mark.parametrize("v0", [0.0, 0.35, -0.2])
 def test_a_prepared_start_is_the_core_operators_after_the_preparation_sweep(v0):
     # the diagnose engine's prepared state against the core's play operators driven through the

@@ -2,8 +2,9 @@
 
 :func:`predict` computes what ``simulate(model, Signal("table", t, u, column="u"), mode="open",
 step=dt, noise=False)`` computes for a recorded command ``u`` sampled at ``dt`` (the command held
-over each sample, the device relaxed at zero command before the first sample), plus the channels'
-sampling lags, but splits the device at its only nonlinearity that is not linear in its parameters:
+over each sample, the device relaxed at zero command before the first sample; with
+``rec.oversample`` internal steps per sample, ``step=dt / oversample`` read at the samples, see
+:func:`at_samples`), plus the channels' sampling lags, but splits the device at its only nonlinearity that is not linear in its parameters:
 
 * ``ua`` (delay, the amplifier's optional input stage, its output stage with current limit and
   rails) by the core's own :func:`~piezo_fmu.core.plant.amp_step` compiled with numba;

@@ -42,11 +42,13 @@ def check_outputs(out, force=False):
 
 
 def replay_model(model, rec):
-    """Run ``model`` open loop on the recorded command of ``rec`` (noise off): dict x, us."""
-    sig = Signal("table", t=rec.t, values=rec.u, column="u")
-    res = simulate(model, sig, float(rec.t[-1]), step=rec.dt, mode="open", noise=False, t0=0.0)
-    n = rec.n
-    return {"x": np.asarray(res["x"][:n]), "us": np.asarray(res["us"][:n])}
+    """Run ``model`` open loop on the recorded command of ``rec`` (noise off; held over each sample,
+    stepped ``rec.oversample`` times per sample as the fit replayed it): dict x, us at the samples."""
+    m, n = rec.oversample, rec.n
+    t = rec.t if m == 1 else np.arange(n * m) * rec.h
+    sig = Signal("table", t=t, values=rec.u if m == 1 else np.repeat(rec.u, m), column="u")
+    res = simulate(model, sig, float(t[-1]), step=rec.h, mode="open", noise=False, t0=0.0)
+    return {"x": np.asarray(res["x"])[:n * m:m], "us": np.asarray(res["us"])[:n * m:m]}
 
 
 def _fmt(v):
