@@ -4,7 +4,8 @@
 step=dt, noise=False)`` computes for a recorded command ``u`` sampled at ``dt`` (the command held
 over each sample, the device relaxed at zero command before the first sample; with
 ``rec.oversample`` internal steps per sample, ``step=dt / oversample`` read at the samples, see
-:func:`at_samples`), plus the channels' sampling lags, but splits the device at its only nonlinearity that is not linear in its parameters:
+:func:`at_samples`), plus the channels' sampling lags, but splits the device at its only
+nonlinearity that is not linear in its parameters:
 
 * ``ua`` (delay, the amplifier's optional input stage, its output stage with current limit and
   rails) by the core's own :func:`~piezo_fmu.core.plant.amp_step` compiled with numba;

@@ -307,7 +307,7 @@ def main(argv=None):
     ap.add_argument("--out", help="write all results as JSON")
     ap.add_argument("--markdown", help="write the tables as markdown")
     a = ap.parse_args(argv)
-    if a.replay_rate is not None and not a.replay_rate > 0:
+    if a.replay_rate is not None and not 0 < a.replay_rate < float("inf"):
         ap.error(f"--replay-rate {a.replay_rate}: a positive rate in Hz")
     if a.draw < 0:
         ap.error(f"--draw {a.draw}: a draw is 0 (the established sets) or a positive number")
