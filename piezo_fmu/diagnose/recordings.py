@@ -31,9 +31,9 @@ against 18, at 1.9 times the time (see docs/diagnose-history.md, stop 47).
 """
 from __future__ import annotations
 
-import numpy as np
-
 import math
+
+import numpy as np
 
 from ..errors import UserError
 from ..recording import read_csv_table
@@ -47,6 +47,13 @@ HELDOUT_EVERY = 4
 INTERNAL_RATE = 8000.0      # [Hz] the replay rate measured on the rig (see above)
 MAX_OVERSAMPLE = 32         # internal steps per sample at most
 MAX_INTERNAL = 160000       # internal steps in one recording at most (20 s at INTERNAL_RATE)
+# the response a command change starts is counted over this long after it [s] (amplifier lags
+# of 0.2-3 ms, a current-limited step's ramp of tens of ms): a step at the end of one block
+# belongs to the next, where its response is
+RESPONSE_S = 0.05
+# the training blocks are starved when they get less than this share of their due share (75 %)
+# of the command's activity
+STARVED = 0.1
 
 
 def internal_steps(dt, n, rate=None):
@@ -57,13 +64,6 @@ def internal_steps(dt, n, rate=None):
         return 1
     want = math.ceil(rate * dt - 1e-9)
     return int(max(1, min(want, MAX_OVERSAMPLE, MAX_INTERNAL // max(n, 1))))
-# the response a command change starts is counted over this long after it [s] (amplifier lags
-# of 0.2-3 ms, a current-limited step's ramp of tens of ms): a step at the end of one block
-# belongs to the next, where its response is
-RESPONSE_S = 0.05
-# the training blocks are starved when they get less than this share of their due share (75 %)
-# of the command's activity
-STARVED = 0.1
 
 
 def load_recordings(paths, columns=None, scale=None):
