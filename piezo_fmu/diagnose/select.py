@@ -29,9 +29,9 @@ from .decide import (CONFIDENT, at_bound, closeness, confidence, noise_levels, o
                      passes, removed_rms, score, told_apart)
 from .fit import Fitter, free_names, get_value, set_value, strip
 from .loopshape import (SHAPE_BESIDE_BEYOND, SHAPE_BEYOND, SHAPE_BEYOND_NOMINAL, SHAPE_BEYOND_REMOVED,
-                        SHAPE_EXPLAINED, SHAPE_EXPLAINED_EACH, SHAPE_PARTIAL_BEYOND, SHAPE_PARTIAL_EXPLAINED,
-                        SHAPE_PARTIAL_REMOVED, SHAPE_REMOVED, beyond_classical, further_from_nominal,
-                        loop_beside)
+                        SHAPE_EXPLAINED, SHAPE_EXPLAINED_EACH, SHAPE_FURTHER_EXPLAINED, SHAPE_PARTIAL_BEYOND,
+                        SHAPE_PARTIAL_EXPLAINED, SHAPE_PARTIAL_REMOVED, SHAPE_REMOVED, beyond_classical,
+                        further_from_nominal, loop_beside)
 from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, drop, present, without
 from .residuals import ACCEPT, full_residuals, residual_peaks, residual_sets
 from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, creep_before_drift, delay_or_lag, drift_both,
@@ -429,10 +429,16 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             # (or, but for a partial one, further than the recalibrated loop from the nominal operators')
             further = (further_from_nominal(fitter, best["fit"].params, current, noise, p_base.thresholds)
                        if asks and not partial and not apart else None)
-            if not asks or not (apart or (further is not None and further >= SHAPE_BEYOND_NOMINAL)):
+            far_out = further is not None and further >= SHAPE_BEYOND_NOMINAL
+            # (on that distance alone, the finer grid must draw the device's loop: SHAPE_FURTHER_EXPLAINED)
+            drawn = explained >= SHAPE_FURTHER_EXPLAINED
+            if not asks or not (apart or (far_out and drawn)):
                 far = (f"; its loop {beyond:.2f} x the noise from the best classical PI loop"
                        + ("" if further is None else f", {further:.2f} further from the nominal operators' "
-                          "than the recalibrated loop") if asks else
+                          "than the recalibrated loop")
+                       + (f", but it explains less than {100 * SHAPE_FURTHER_EXPLAINED:.0f} % of the "
+                          "structured residual: the finer grid does not draw the device's loop, a loop "
+                          "of another family" if far_out else "") if asks else
                        f"; {100 * everywhere:.0f} % on its weakest channel" if one_channel else "")
                 if asks and beside and not partial and beyond >= SHAPE_BEYOND:   # (named as a loop alone)
                     far += f"; beside {', '.join(beside)} it must lie {far_enough:g} x the noise from them"
@@ -445,7 +451,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                  "noise beyond the recalibrated one), and the loop it draws lies "
                  + (f"{beyond:.2f} x the noise from the best classical PI loop" if further is None else
                     f"{further:.2f} x the noise further from the nominal operators' loops than the "
-                    "recalibrated one")
+                    f"recalibrated one ({beyond:.2f} x the noise from the best classical PI loop)")
                  + ": a loop shape" + ("" if strong else " (the recalibrated PI had bent part of it in)"
                                       if weak else " (other misfit stays beside it)"))
         # the strongest competitor on the same residual (a failed one counts half)
