@@ -182,6 +182,16 @@ def test_the_compiled_sos_filter_is_scipys_sosfilt_to_the_bit():
     assert np.array_equal(sos_filter(sos, x[3]), sosfilt(sos, x[3]))
     assert np.array_equal(sos_filter(sos[:1], x[:, ::2]), sosfilt(sos[:1], x[:, ::2], axis=-1))
     assert not np.array_equal(sos_filter(sos[:1], x), sosfilt(sos, x, axis=-1))
+    # the chain's ends in the same pass: a gain, a settled start c0 per row, the static gain dc
+    # (one value, or one per sample: a sensor's leakage) - the numpy expression's numbers
+    gain, c0 = 0.37, x[:, :1] * 0.37
+    dc = np.exp(-np.arange(x.shape[1]) * 1e-3)
+    for d in (1.7, dc):
+        want = sosfilt(sos, x * gain - c0, axis=-1) + d * c0
+        assert np.array_equal(sos_filter(sos, x, gain, c0, d), want)
+        assert np.array_equal(sos_filter(sos, x[2], gain, c0[2], d), want[2])
+    assert np.array_equal(sos_filter(sos, x, gain), sosfilt(sos, x * gain, axis=-1))
+    assert not np.array_equal(sos_filter(sos, x, gain, c0, 1.7), sosfilt(sos, x * gain, axis=-1))
 
 
 def test_the_linear_solve_recovers_the_weights_of_kp_cells():

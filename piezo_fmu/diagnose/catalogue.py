@@ -285,17 +285,19 @@ def _lag_profile(fitter: Fitter, p, struct, delay, tau0, both=False):
         q.tau = math.exp(x)
         if both:
             q.tau2 = p.tau2 * q.tau / p.tau
-        return q, fitter.quick(q)
+        return q
 
     xs = sorted({math.log(max(tau0 * f, lo)) for f in (0.5, 1.0, 2.0)})
-    pts = [at(x) for x in xs]
+    qs = [at(x) for x in xs]
+    pts = list(zip(qs, fitter.quick_many(qs)))
     cs = [c for _, c in pts]
     best = pts[int(np.argmin(cs))]
     if len(xs) == 3:
         a = np.polyfit(xs, cs, 2)
         if a[0] > 0:
             x_star = min(max(-a[1] / (2 * a[0]), xs[0] - 0.7), xs[-1] + 0.7)
-            cand = at(x_star)
+            q = at(x_star)
+            cand = q, fitter.quick(q)
             if cand[1] < best[1]:
                 best = cand
     return best

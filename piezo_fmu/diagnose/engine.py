@@ -154,17 +154,45 @@ def _kernels():
         return out
 
     @numba.njit(cache=True, nogil=True)
-    def sos_run(sos, x, out):
+    def sos_run(sos, x, gain, c0, dc, out):
         # scipy's sosfilt recursion (transposed direct form II, from rest), bit for bit, on every
         # row of x at once: the samples outside, the rows inside, so the rows' independent
-        # recursions overlap (a row at a time waits on each multiply-add: 2x slower with 10 rows)
+        # recursions overlap (a row at a time waits on each multiply-add: 2x slower with 10 rows).
+        # With the chain's ends in the same pass (each the numpy expression's operations): the
+        # input x * gain - c0 (c0 per row, none when empty), the output y + dc * c0 (dc per
+        # sample, or one value)
         n, m = x.shape
         ns = sos.shape[0]
+        settled = c0.size > 0
+        dstep = 1 if dc.size > 1 else 0
+        if n == 1:
+            # one row (a prediction, not a design): section after section, the state in registers
+            # (the same operations in the same order, 1.7x faster than through the arrays)
+            for k in range(m):
+                out[0, k] = x[0, k] * gain - c0[0] if settled else x[0, k] * gain
+            for s in range(ns):
+                b0 = sos[s, 0]
+                b1 = sos[s, 1]
+                b2 = sos[s, 2]
+                a1 = sos[s, 4]
+                a2 = sos[s, 5]
+                s1 = 0.0
+                s2 = 0.0
+                for k in range(m):
+                    xi = out[0, k]
+                    yi = b0 * xi + s1
+                    s1 = b1 * xi - a1 * yi + s2
+                    s2 = b2 * xi - a2 * yi
+                    out[0, k] = yi
+            if settled:
+                for k in range(m):
+                    out[0, k] = out[0, k] + dc[k * dstep] * c0[0]
+            return out
         z1 = np.zeros((ns, n))
         z2 = np.zeros((ns, n))
         for k in range(m):
             for i in range(n):
-                out[i, k] = x[i, k]
+                out[i, k] = x[i, k] * gain - c0[i] if settled else x[i, k] * gain
             for s in range(ns):
                 b0 = sos[s, 0]
                 b1 = sos[s, 1]
@@ -177,6 +205,10 @@ def _kernels():
                     z1[s, i] = b1 * xi - a1 * yi + z2[s, i]
                     z2[s, i] = b2 * xi - a2 * yi
                     out[i, k] = yi
+            if settled:
+                d = dc[k * dstep]
+                for i in range(n):
+                    out[i, k] = out[i, k] + d * c0[i]
         return out
 
     return amp_run, play_run, pi_run, cell_run, sos_run
@@ -364,11 +396,18 @@ def chain(cols, channel, dev: Device, p: Params, h):
                            None if p.res is None else (float(p.res[0]), float(p.res[1])),
                            float(p.tau_leak) if channel == "us" else math.inf,
                            (float(p.m), float(p.c), dev.k_a, dev.k_f), p.pick, float(h), p.res_at)
-    cols = cols * gain
     # the chain starts settled at the first sample's stroke (a prepared start has one; a relaxed
     # start is at zero): its steady response to that level, plus the filtered change from it
-    c0 = cols[..., :1]
+    c0 = cols[..., :1] * gain
     settled = bool(np.any(c0))
+    if settled and channel == "us" and math.isfinite(p.tau_leak):
+        # a sensor's leakage is not settled: the core's sensor starts charged with the first force
+        # and leaks from there (Sensor.reset(F)), the step response of the leakage block
+        dc = _leak_start(cols.shape[-1], dc, float(h), float(p.tau_leak))
+    if front is None and sos is not None:
+        # the gain, the settled start and the filter in one compiled pass
+        return sos_filter(sos, cols, gain, c0 if settled else None, dc)
+    cols = cols * gain
     if settled:
         cols = cols - c0
     if front is not None:
@@ -379,21 +418,30 @@ def chain(cols, channel, dev: Device, p: Params, h):
     if sos is not None:
         cols = sos_filter(sos, cols)
     if settled:
-        # a sensor's leakage is not settled: the core's sensor starts charged with the first force
-        # and leaks from there (Sensor.reset(F)), the step response of the leakage block
-        if channel == "us" and math.isfinite(p.tau_leak):
-            dc = dc * np.exp(-np.arange(cols.shape[-1]) * (h / p.tau_leak))
         cols = cols + dc * c0
     return cols
 
 
-def sos_filter(sos, cols):
+@lru_cache(maxsize=16)
+def _leak_start(n, dc, h, tau_leak):
+    """``dc`` decaying through the sensor's leakage over ``n`` steps of ``h`` [s] (read only)."""
+    out = dc * np.exp(-np.arange(n) * (h / tau_leak))
+    out.flags.writeable = False
+    return out
+
+
+def sos_filter(sos, cols, gain=1.0, c0=None, dc=1.0):
     """``scipy.signal.sosfilt(sos, cols, axis=-1)`` (from rest; ``sos`` normalised, a0 = 1), the
-    same numbers, with all rows of ``cols`` filtered in one compiled pass."""
+    same numbers, with all rows of ``cols`` filtered in one compiled pass. With ``c0`` (one value
+    per row, shaped as ``cols[..., :1]``) the filter runs from a settled start, as
+    ``sosfilt(sos, cols * gain - c0) + dc * c0`` (``dc``: the static gain, one value or one per
+    sample)."""
     x = np.ascontiguousarray(cols, dtype=float)
     rows = x.reshape(-1, x.shape[-1])
     out = np.empty_like(rows)
-    _kernels()[4](np.ascontiguousarray(sos, dtype=float), rows, out)
+    start = np.empty(0) if c0 is None else np.ascontiguousarray(c0, dtype=float).reshape(-1)
+    _kernels()[4](np.ascontiguousarray(sos, dtype=float), rows, float(gain), start,
+                  np.atleast_1d(np.asarray(dc, dtype=float)), out)
     return out.reshape(x.shape)
 
 

@@ -165,13 +165,27 @@ MODE_ZETA_MIN = 0.007
 
 
 def _pool():
-    """Two worker threads for Jacobian columns (the machine the issue names has two cores)."""
+    """Two worker threads for Jacobian columns and screening grids (the machine the issue names
+    has two cores)."""
     global _POOL
     if _POOL is None:
         from concurrent.futures import ThreadPoolExecutor
 
-        _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix="diagnose-jac")
+        _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix=_POOL_THREADS)
     return _POOL
+
+
+_POOL_THREADS = "diagnose-pool"
+
+
+def _map(f, items):
+    """``[f(x) for x in items]``, on :func:`_pool`'s two threads (on the calling thread for a single
+    item, or when it is one of them: a worker waiting for the pool's other tasks could wait for
+    itself)."""
+    items = list(items)
+    if len(items) < 2 or threading.current_thread().name.startswith(_POOL_THREADS):
+        return [f(x) for x in items]
+    return list(_pool().map(f, items))
 
 
 def _gain_offset(pr, y, basis, bb, by, k):
@@ -296,22 +310,46 @@ class Fitter:
                 self._replays[key] = rp
         return rp
 
-    def _predict_held(self, p: Params):
-        """Every recording's prediction with ``p``'s weights as they are, the stroke taken from the
-        cache when only the dynamics after the loop differ (counted as ``CHAIN_ONLY_WEIGHT`` of an
-        evaluation; a new stroke as a whole one)."""
-        key = (p.tau, p.tau2, p.slew, p.delay, p.u_norm, p.prep, p.y_sat,
-               np.asarray(p.thresholds, float).tobytes(), np.asarray(p.weights, float).tobytes(),
-               None if not p.n_cells else (p.cells.tobytes(), p.cell_weights().tobytes()))
-        hs = self._strokes.get(key)
-        self.spend(1.0 if hs is None else CHAIN_ONLY_WEIGHT)
-        if hs is None:
-            hs = [stroke(r, self.dev, p) for r in self.recs]
-            with self._lock:
-                while len(self._strokes) >= STROKES_KEPT:
-                    self._strokes.pop(next(iter(self._strokes)))
-                self._strokes[key] = hs
+    def _stroke_key(self, p: Params):
+        """What the hysteretic stroke of ``p`` depends on (the key of the strokes' cache)."""
+        return (p.tau, p.tau2, p.slew, p.delay, p.u_norm, p.prep, p.y_sat,
+                np.asarray(p.thresholds, float).tobytes(), np.asarray(p.weights, float).tobytes(),
+                None if not p.n_cells else (p.cells.tobytes(), p.cell_weights().tobytes()))
+
+    def _strokes_for(self, ps):
+        """The hysteretic strokes of the parameter sets ``ps`` (each a list over the recordings),
+        from the cache when only the dynamics after the loop differ (counted as
+        ``CHAIN_ONLY_WEIGHT`` of an evaluation; a new stroke as a whole one). The cache and the work
+        counted are those of one evaluation after another, in order, with the new strokes computed
+        once each on the two threads: what is searched never depends on the threads (two Jacobian
+        columns racing for the cache had counted a stroke twice)."""
+        keys = [self._stroke_key(p) for p in ps]
+        kept = list(self._strokes)          # the cache, first in first out, as it goes
+        new = {}
+        for key, p in zip(keys, ps):
+            if key in kept:
+                self.spend(CHAIN_ONLY_WEIGHT)
+                continue
+            self.spend(1.0)
+            new.setdefault(key, p)
+            while len(kept) >= STROKES_KEPT:
+                kept.pop(0)
+            kept.append(key)
+        strokes = dict(self._strokes)
+        todo = list(new.items())
+        made = _map(lambda kp: [stroke(r, self.dev, kp[1]) for r in self.recs], todo)
+        strokes.update((key, hs) for (key, _), hs in zip(todo, made))
+        with self._lock:
+            self._strokes = {key: strokes[key] for key in kept}
+        return [strokes[key] for key in keys]
+
+    def _predictions(self, p: Params, hs):
+        """Every recording's prediction with ``p``'s weights as they are, from its strokes ``hs``."""
         return [predict(r, self.dev, p, hx=h) for r, h in zip(self.recs, hs)]
+
+    def _predict_held(self, p: Params):
+        """Every recording's prediction with ``p``'s weights as they are (see :meth:`_strokes_for`)."""
+        return self._predictions(p, self._strokes_for([p])[0])
 
     def varpro(self, p: Params, struct: Structure, gn_iter=1):
         """Re-solve the linear parameters of ``p`` in place; return the weighted training residual.
@@ -323,6 +361,12 @@ class Fitter:
         self.spend(2.0 + (len(p.weights) + p.n_cell_cols) / 4.0)
         return solve_linear(self.recs, self.dev, p, self.lam, drift_terms=struct.drift_terms,
                             replays=self.replays(p), gn_iter=gn_iter)
+
+    def each(self, f, items):
+        """``[f(x) for x in items]`` on the two threads, for evaluations and fits that do not touch
+        the strokes' cache (:meth:`varpro`, :meth:`fit` with the weights re-solved): independent,
+        the same results and the same work counted as one after another."""
+        return _map(f, items)
 
     def cost(self, p: Params, rows="train"):
         r = residuals(self.recs, self.dev, p, self.lam, self.replays(p), rows=rows)
@@ -352,7 +396,17 @@ class Fitter:
         """Weighted training SSE with the weights held and each channel's gain and offset re-fitted
         (and a drift polynomial on ``x``, and on ``us`` for a load pick-off, when ``drift``):
         normal equations on cached sums."""
-        preds = self._predict_held(p)
+        return self._quick_of(p, self._predict_held(p), drift)
+
+    def quick_many(self, ps, drift=False):
+        """:meth:`quick` of every parameter set in ``ps``, in order, on the two threads: the same
+        costs and the same work counted as one call after another."""
+        ps = list(ps)
+        hss = self._strokes_for(ps)
+        return _map(lambda i: self._quick_of(ps[i], self._predictions(ps[i], hss[i]), drift), range(len(ps)))
+
+    def _quick_of(self, p: Params, preds, drift):
+        """:meth:`quick`'s cost from the predictions ``preds`` of ``p`` (weights held)."""
         sse = 0.0
         for ch in ("x", "us"):
             data = self._train_data(ch)
@@ -371,11 +425,12 @@ class Fitter:
         return sse if math.isfinite(sse) else math.inf
 
     # -- fitting ---------------------------------------------------------------------------------
-    def held(self, p: Params, struct: Structure):
+    def held(self, p: Params, struct: Structure, hs=None):
         """Weighted training residual with the PI weights held and each channel's gain and offset
         (and the displacement's drift polynomial when ``struct`` has one) solved exactly: one
-        filtered column per channel instead of one per operator."""
-        preds = self._predict_held(p)
+        filtered column per channel instead of one per operator (``hs``: ``p``'s strokes, when
+        :meth:`_strokes_for` gave them already)."""
+        preds = self._predict_held(p) if hs is None else self._predictions(p, hs)
         out = []
         for ch in ("x", "us"):
             data = self._train_data(ch)
@@ -459,12 +514,12 @@ class Fitter:
             last.update(x=np.array(th), r=r, p=p.copy())
             return r
 
-        def column(base, th, i, step):
+        def moved(base, th, i, step):
             q = base.copy()
             for n, v in zip(free, th):
                 set_value(q, n, math.exp(v), self.dev)
             set_value(q, free[i], math.exp(th[i] + step), self.dev)
-            return (evaluate(q, struct) - last["r"]) / step
+            return q
 
         def jac(th):
             # forward differences, one parameter per worker (the heavy parts release the GIL)
@@ -473,7 +528,13 @@ class Fitter:
             base = last["p"]
             steps = [1e-3 * max(1.0, abs(v)) * (1 if v + 1e-3 * max(1.0, abs(v)) <= hi[i] else -1)
                      for i, v in enumerate(th)]
-            cols = list(_pool().map(lambda i: column(base, th, i, steps[i]), range(len(free))))
+            qs = [moved(base, th, i, steps[i]) for i in range(len(free))]
+            if held:
+                # (the strokes first, in order: the columns share the cache)
+                hss = self._strokes_for(qs)
+                cols = _map(lambda i: (self.held(qs[i], struct, hss[i]) - last["r"]) / steps[i], range(len(qs)))
+            else:
+                cols = _map(lambda i: (self.varpro(qs[i], struct) - last["r"]) / steps[i], range(len(qs)))
             return np.column_stack(cols)
 
         if free:
@@ -512,7 +573,7 @@ class Fitter:
         parameters re-solved at every point (``varpro``): for dynamics the held weights had been
         bent to stand in for (a lag fitted to slew-limited steps), only re-solved weights let the
         right dynamics show their gain."""
-        best, best_c = None, math.inf
+        ps = []
         for assign in setters:
             p = p0.copy()
             for n, v in assign.items():
@@ -522,11 +583,18 @@ class Fitter:
                     p.res = v
                 else:
                     set_value(p, n, v, self.dev)
-            if solve is not None:
+            ps.append(p)
+        if solve is None:
+            costs = self.quick_many(ps)
+        else:
+            # (each point's weights re-solved in its own copy: independent, on the two threads)
+            def solved(p):
                 r = self.varpro(p, solve)
-                c = float(r @ r)
-            else:
-                c = self.quick(p)
+                return float(r @ r)
+
+            costs = _map(solved, ps)
+        best, best_c = None, math.inf
+        for p, c in zip(ps, costs):
             if c < best_c:
                 best, best_c = p, c
         return best, best_c

@@ -247,7 +247,7 @@ def _mode(fitter, rc, struct, sat):
             freqs += [f for f in spectral_peaks(res, 1 / r.dt, 4) if MODE_RANGE[0] <= f <= hi]
     # screened with the weights held (gains and offsets re-solved): cheap, and the mode's effect
     # is far larger than the weights' re-adjustment
-    grid = []
+    points, qs = [], []
     for pick in picks:
         for at in places:
             for f in freqs:
@@ -255,12 +255,14 @@ def _mode(fitter, rc, struct, sat):
                     q = p.copy()
                     q.pick, q.res_at = pick, at
                     q.set_mode(fitter.dev, f=float(f), zeta=z)
-                    grid.append((fitter.quick(q), pick, at, float(f), z))
+                    points.append((pick, at, float(f), z))
+                    qs.append(q)
             if (pick, at) != (p.pick, p.res_at):
                 q = p.copy()
                 q.pick, q.res_at = pick, at
-                grid.append((fitter.quick(q), pick, at, f_nom, z_nom))
-    grid.sort()
+                points.append((pick, at, f_nom, z_nom))
+                qs.append(q)
+    grid = sorted((c, *pt) for c, pt in zip(fitter.quick_many(qs), points))
     q_now = fitter.quick(p)
     if _promise(fitter, q_now, grid[0][0]) < SCREEN:
         why = "not visible in this recording (no mode frequency improves the fit)"
@@ -441,13 +443,16 @@ def _order(fitter, rc, struct, sat):
         rc.params = one
         rc.report["amplifier_order"] = {"value": 1, "bic_gain_of_order_2": round(gain, 1)}
         return True
-    trials, screen = [], []
+    trials = []
     q_now = fitter.quick(p)
-    for share in (0.1, 0.25, 0.5):
+    shares = (0.1, 0.25, 0.5)
+    qs = []
+    for share in shares:
         q = p.copy()
         tot = q.tau
         q.tau, q.tau2 = tot * (1 - share), tot * share
-        screen.append((fitter.quick(q), share, q))
+        qs.append(q)
+    screen = [(c, share, q) for c, share, q in zip(fitter.quick_many(qs), shares, qs)]
     screen.sort(key=lambda t: t[0])
     if _promise(fitter, q_now, screen[0][0]) < SCREEN:
         rc.report["amplifier_order"] = {"value": 1, "why_not_2": "a second lag stage does not improve the fit"}
@@ -484,7 +489,8 @@ def _lags(fitter, rc, struct, sat):
         q = p.copy()
         q.lag_x, q.lag_us = lx, lu
         # a lag trades off against the amplifier's lag: screened at three lags
-        best = min((fitter.quick(_scaled(q, k)), k) for k in (0.7, 1.0, 1.4))
+        scales = (0.7, 1.0, 1.4)
+        best = min(zip(fitter.quick_many(_scaled(q, k) for k in scales), scales))
         screen.append((best[0], _scaled(q, best[1])))
     screen.sort(key=lambda t: t[0])
     changed = False

@@ -159,7 +159,9 @@ def _without_weak(fitter, current, struct, p_base, before):
         v = get_value(before, n, fitter.dev)
         if math.isfinite(v) and v > 0.0:
             set_value(restored, n, v, fitter.dev)
-    return min((fitter.fit(q, struct, max_nfev=6) for q in (stripped, restored)), key=lambda fr: fr.cost).params
+    # (two independent fits with the weights re-solved, on the two threads)
+    fits = fitter.each(lambda q: fitter.fit(q, struct, max_nfev=6), [stripped, restored])
+    return min(fits, key=lambda fr: fr.cost).params
 
 
 def _free(fitter, name, struct, s_new, dropped):
@@ -241,9 +243,10 @@ def _starts(fitter, name, current, held, struct, cctx, recal):
             alts.append((a, []))
     # the weights re-solved for each proposed dynamics (held weights fitted to other dynamics would
     # make a good proposal look bad)
-    for x in [start] + [a for a, _ in alts]:
-        if x is not None and name != "hysteresis_shape":
-            fitter.varpro(x, struct.with_effect(name, 0, len(x.creep)))
+    # (each start in its own copy: independent, on the two threads)
+    if name != "hysteresis_shape":
+        fitter.each(lambda x: fitter.varpro(x, struct.with_effect(name, 0, len(x.creep))),
+                    [x for x in [start] + [a for a, _ in alts] if x is not None])
     return start, alts
 
 
@@ -338,7 +341,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 continue
             # the screening's cost (the starts' weights re-solved in _starts)
             starts = [x for x in [start] + [a for a, _ in alts] if x is not None]
-            q = min(fitter.quick(x, drift=name == "thermal_drift") for x in starts)
+            q = min(fitter.quick_many(starts, drift=name == "thermal_drift"))
             screened.append((q0 - q, name, start, alts))
         screened.sort(key=lambda s: -s[0])
         step(f"round {rnd + 1}: screening gains " + ", ".join(f"{n} {g / max(q0, 1e-300):.3g}" for g, n, _, _ in screened))

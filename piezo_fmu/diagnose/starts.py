@@ -58,8 +58,9 @@ def further_mode_start(fitter: Fitter, p, struct: Structure, ctx):
     # points get their lag re-searched
     # where it acts: after the mechanics (displacement) or on the drive (every channel)
     places = ("output", "drive") if "us" in chans else ("output",)
-    scored = sorted((fitter.quick(with_params(p, res=(f, z), res_at=at)), f, z, at)
-                    for f in fs for z in (0.005, 0.015, 0.06) for at in places)
+    grid = [(f, z, at) for f in fs for z in (0.005, 0.015, 0.06) for at in places]
+    costs = fitter.quick_many(with_params(p, res=(f, z), res_at=at) for f, z, at in grid)
+    scored = sorted((c, f, z, at) for c, (f, z, at) in zip(costs, grid))
     starts = [(c, with_params(p, res=(f, z), res_at=at)) for c, f, z, at in scored[:3]]
     # a further mode the recalibrated first mode had bent to: the first mode is no longer
     # where it settled (rig-d5-000: a 205 Hz mode left the first mode at 997 Hz, zeta 0.13,
@@ -67,9 +68,9 @@ def further_mode_start(fitter: Fitter, p, struct: Structure, ctx):
     # without the mode, with the first mode re-searched 0.13 x): each residual peak is
     # screened with the first mode re-searched (the best MODE_RESEARCH_PEAKS of them: the search
     # is the screening's largest cost on long records)
-    at_peaks = sorted(((fitter.quick(q), i, q) for i, q in enumerate(
-        with_params(p, res=(f, 0.015), res_at=at) for f in distinct(pk for pk in ctx.get("peaks", [])
-                                                                if 5.0 < pk < fmax) for at in places)))
+    peak_qs = [with_params(p, res=(f, 0.015), res_at=at)
+               for f in distinct(pk for pk in ctx.get("peaks", []) if 5.0 < pk < fmax) for at in places]
+    at_peaks = sorted((c, i, q) for i, (c, q) in enumerate(zip(fitter.quick_many(peak_qs), peak_qs)))
     starts += [first_mode_searched(fitter, q, ctx) for _, _, q in at_peaks[:MODE_RESEARCH_PEAKS]]
     best, best_c = None, math.inf
     for _, _, q0 in sorted((c, i, q) for i, (c, q) in enumerate(starts))[:3]:
@@ -94,13 +95,14 @@ def swapped_mode(fitter: Fitter, p, struct: Structure, ctx):
     restarts = [(f1 * k, 0.05) for k in MODE_SWAP_STARTS] + [
         (pk, 0.015) for pk in distinct(ctx.get("peaks", [])) if abs(math.log(pk / f1)) > math.log(1.1)
         and lo < pk < hi]
-    starts = []
+    qs = []
     for f, z in restarts:
         for pick in (("contact", "load") if "us" in ctx["channels"] else ("stack",)):
             for at in (("output", "drive") if "us" in ctx["channels"] else ("output",)):
                 q = with_params(p, res=(f1, z1), res_at=at, pick=pick)
                 q.set_mode(fitter.dev, f=float(np.clip(f, lo * 1.02, hi / 1.02)), zeta=z)
-                starts.append((fitter.quick(q), len(starts), q))
+                qs.append(q)
+    starts = [(c, i, q) for i, (c, q) in enumerate(zip(fitter.quick_many(qs), qs))]
     # the lag the old first mode had absorbed decides between them: the best three re-searched
     # (rig-d5-168: the true pair screened 0.98 x the old model's cost before and 0.09 x after)
     return min((lag_searched(fitter, q, struct, p.tau) for _, _, q in sorted(starts)[:3]),
@@ -127,16 +129,19 @@ def first_mode_searched(fitter: Fitter, q, ctx):
     fres = q.res[0]
     fs = [f1 * k for k in MODE_RESEARCH] + [pk for pk in distinct(ctx.get("peaks", []))
                                             if abs(math.log(pk / fres)) > math.log(1.1)]
-    best, best_c = q, fitter.quick(q)
+    moved = []
     for f in fs:
         if not lo < f < hi:
             continue
         for z in MODE_RESEARCH_ZETA:
             r = q.copy()
             r.set_mode(fitter.dev, f=f, zeta=z)
-            c = fitter.quick(r)
-            if c < best_c:
-                best, best_c = r, c
+            moved.append(r)
+    costs = fitter.quick_many([q] + moved)
+    best, best_c = q, costs[0]
+    for r, c in zip(moved, costs[1:]):
+        if c < best_c:
+            best, best_c = r, c
     return best_c, best
 
 
