@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
+from . import workers
 from .engine import Params, predict, replay, stroke
 from .varpro import residuals, solve_linear
 
@@ -149,7 +150,6 @@ def set_value(p: Params, name, v, dev=None):
         setattr(p, name, v)
 
 
-_POOL = None
 # what one pass of an evaluation costs besides its samples, in samples: the calls around the
 # kernels (measured: a 2 k-sample record ran 1.8e6 work units per CPU second, 3e5 samples 1.2e7)
 EVAL_OVERHEAD = 10_000
@@ -164,28 +164,6 @@ STROKES_KEPT = 4         # strokes cached per fitter (a screening walks one stro
 MODE_ZETA_MIN = 0.007
 
 
-def _pool():
-    """Two worker threads for Jacobian columns and screening grids (the machine the issue names
-    has two cores)."""
-    global _POOL
-    if _POOL is None:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _POOL = ThreadPoolExecutor(max_workers=2, thread_name_prefix=_POOL_THREADS)
-    return _POOL
-
-
-_POOL_THREADS = "diagnose-pool"
-
-
-def _map(f, items):
-    """``[f(x) for x in items]``, on :func:`_pool`'s two threads (on the calling thread for a single
-    item, or when it is one of them: a worker waiting for the pool's other tasks could wait for
-    itself)."""
-    items = list(items)
-    if len(items) < 2 or threading.current_thread().name.startswith(_POOL_THREADS):
-        return [f(x) for x in items]
-    return list(_pool().map(f, items))
 
 
 def _gain_offset(pr, y, basis, bb, by, k):
@@ -337,7 +315,7 @@ class Fitter:
             kept.append(key)
         strokes = dict(self._strokes)
         todo = list(new.items())
-        made = _map(lambda kp: [stroke(r, self.dev, kp[1]) for r in self.recs], todo)
+        made = workers.each(lambda kp: [stroke(r, self.dev, kp[1]) for r in self.recs], todo)
         strokes.update((key, hs) for (key, _), hs in zip(todo, made))
         with self._lock:
             self._strokes = {key: strokes[key] for key in kept}
@@ -366,7 +344,7 @@ class Fitter:
         """``[f(x) for x in items]`` on the two threads, for evaluations and fits that do not touch
         the strokes' cache (:meth:`varpro`, :meth:`fit` with the weights re-solved): independent,
         the same results and the same work counted as one after another."""
-        return _map(f, items)
+        return workers.each(f, items)
 
     def cost(self, p: Params, rows="train"):
         r = residuals(self.recs, self.dev, p, self.lam, self.replays(p), rows=rows)
@@ -403,7 +381,8 @@ class Fitter:
         costs and the same work counted as one call after another."""
         ps = list(ps)
         hss = self._strokes_for(ps)
-        return _map(lambda i: self._quick_of(ps[i], self._predictions(ps[i], hss[i]), drift), range(len(ps)))
+        return workers.each(lambda i: self._quick_of(ps[i], self._predictions(ps[i], hss[i]), drift),
+                            range(len(ps)))
 
     def _quick_of(self, p: Params, preds, drift):
         """:meth:`quick`'s cost from the predictions ``preds`` of ``p`` (weights held)."""
@@ -532,9 +511,11 @@ class Fitter:
             if held:
                 # (the strokes first, in order: the columns share the cache)
                 hss = self._strokes_for(qs)
-                cols = _map(lambda i: (self.held(qs[i], struct, hss[i]) - last["r"]) / steps[i], range(len(qs)))
+                cols = workers.each(lambda i: (self.held(qs[i], struct, hss[i]) - last["r"]) / steps[i],
+                                    range(len(qs)))
             else:
-                cols = _map(lambda i: (self.varpro(qs[i], struct) - last["r"]) / steps[i], range(len(qs)))
+                cols = workers.each(lambda i: (self.varpro(qs[i], struct) - last["r"]) / steps[i],
+                                    range(len(qs)))
             return np.column_stack(cols)
 
         if free:
@@ -592,7 +573,7 @@ class Fitter:
                 r = self.varpro(p, solve)
                 return float(r @ r)
 
-            costs = _map(solved, ps)
+            costs = workers.each(solved, ps)
         best, best_c = None, math.inf
         for p, c in zip(ps, costs):
             if c < best_c:

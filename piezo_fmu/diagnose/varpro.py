@@ -15,6 +15,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.optimize import lsq_linear
 
+from . import workers
 from .engine import at_samples, chain, leak, predict, replay, saturate, shift
 from .model_io import Device, Params
 
@@ -34,20 +35,41 @@ CELL_RIDGE = 1e-9  # ridge on the KP cells' weights, relative to each column's s
 DEEP_SAT = 10.0
 
 
-def _design(rec, dev, p, rp, lin_w, h0=None):
-    """Columns (per weight) of x and of the sensor force, plus the known part from saturation
-    (linearised at the stroke ``h0`` of the weights ``lin_w``, computed when not given)."""
+def _columns(p, rp, lin_w, h0=None):
+    """Columns (per weight) of the free stroke, plus the known part from saturation (linearised at
+    the stroke ``h0`` of the weights ``lin_w``, computed when not given), at every internal step."""
     z = rp.z
     if math.isfinite(p.y_sat) and lin_w is not None:
         h0 = lin_w @ z if h0 is None else h0
         gp = 1.0 / (1.0 + np.abs(h0) / p.y_sat) ** 2
         c0 = saturate(h0, p.y_sat) - gp * h0
-        cols = np.vstack([z * gp, c0[None, :]])
+        return np.vstack([z * gp, c0[None, :]])
+    return np.vstack([z, np.zeros((1, z.shape[1]))])
+
+
+def _normal(ch, rec, dev, p, cols, nw, extra, rows):
+    """Gram matrix and right side of channel ``ch``'s normal equations on ``rec``: the design's rows
+    are ``cols`` through the channel's chain (the weights and the saturation's known part), then
+    the offset and ``extra`` terms (``x``: the drift's rate and curvature; ``us``: a load
+    pick-off's drift in the force)."""
+    if ch == "x":
+        cmat = np.empty((nw + 2 + extra, rec.n))
+        cmat[:nw + 1] = shift(at_samples(rec, chain(cols, "x", dev, p, rec.h)), p.lag_x)
+        cmat[nw + 1] = 1.0
+        if extra >= 1:
+            tl = shift(rec.t, p.lag_x)
+            cmat[nw + 2] = tl
+        if extra >= 2:
+            cmat[nw + 3] = tl * tl
+        y = rec.x
     else:
-        cols = np.vstack([z, np.zeros((1, z.shape[1]))])
-    ax = shift(at_samples(rec, chain(cols, "x", dev, p, rec.h)), p.lag_x) if rec.x is not None else None
-    asf = shift(at_samples(rec, chain(cols, "us", dev, p, rec.h)), p.lag_us) if rec.us is not None else None
-    return ax, asf
+        cmat = np.empty((nw + 2 + extra, rec.n))
+        cmat[:nw + 1] = shift(at_samples(rec, chain(cols, "us", dev, p, rec.h)), p.lag_us)
+        cmat[nw + 1] = 1.0
+        for j in range(extra):              # the drift's rate and curvature terms in the force
+            cmat[nw + 2 + j] = shift(leak(dev.k_load * rec.t ** (j + 1), p.tau_leak, rec.dt), p.lag_us)
+        y = rec.us
+    return _gram(cmat, rec, rows), _gram_vec(cmat, y, rec, rows)
 
 
 def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_sensor_gain=True,
@@ -96,27 +118,18 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
         kx, ks = nw + 1 + nd, nw + 2 + nt       # rows of the x and us designs
         Mx, cx, Ms, cs = np.zeros((kx, kx)), np.zeros(kx), np.zeros((ks, ks)), np.zeros(ks)
         for i, (r, rp) in enumerate(zip(recs, replays)):
-            ax, asf = _design(r, dev, p, rp, lin_w, None if h0s is None else h0s[i])
-            if r.x is not None:
-                cmat = np.empty((kx, r.n))
-                cmat[:nw + 1] = ax
-                if nd >= 1:
-                    cmat[nw + 1] = 1.0
-                if nd >= 2:
-                    tl = shift(r.t, p.lag_x)
-                    cmat[nw + 2] = tl
-                if nd >= 3:
-                    cmat[nw + 3] = tl * tl
-                Mx += _gram(cmat, r, rows)
-                cx += _gram_vec(cmat, r.x, r, rows)
-            if r.us is not None:
-                cmat = np.empty((ks, r.n))
-                cmat[:nw + 1] = asf
-                cmat[nw + 1] = 1.0
-                for j in range(nt):              # the drift's rate and curvature terms in the force
-                    cmat[nw + 2 + j] = shift(leak(dev.k_load * r.t ** (j + 1), p.tau_leak, r.dt), p.lag_us)
-                Ms += _gram(cmat, r, rows)
-                cs += _gram_vec(cmat, r.us, r, rows)
+            cols = _columns(p, rp, lin_w, None if h0s is None else h0s[i])
+            # (the two channels' normal equations are independent: on the two threads)
+            chans = [c for c in ("x", "us") if getattr(r, c) is not None]
+            got = workers.each(lambda c: _normal(c, r, dev, p, cols, nw, nd - 1 if c == "x" else nt, rows),
+                               chans)
+            for c, (g, v) in zip(chans, got):
+                if c == "x":
+                    Mx += g
+                    cx += v
+                else:
+                    Ms += g
+                    cs += v
         # coefficient maps: c_x = Px theta + qx, c_s = Ps theta + qs
         Px = np.zeros((kx, n_par))
         Px[:nw, :nw] = diff
