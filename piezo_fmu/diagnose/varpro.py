@@ -39,12 +39,16 @@ def _columns(p, rp, lin_w, h0=None):
     """Columns (per weight) of the free stroke, plus the known part from saturation (linearised at
     the stroke ``h0`` of the weights ``lin_w``, computed when not given), at every internal step."""
     z = rp.z
+    cols = np.empty((z.shape[0] + 1, z.shape[1]))
     if math.isfinite(p.y_sat) and lin_w is not None:
         h0 = lin_w @ z if h0 is None else h0
         gp = 1.0 / (1.0 + np.abs(h0) / p.y_sat) ** 2
-        c0 = saturate(h0, p.y_sat) - gp * h0
-        return np.vstack([z * gp, c0[None, :]])
-    return np.vstack([z, np.zeros((1, z.shape[1]))])
+        np.multiply(z, gp, out=cols[:-1])
+        cols[-1] = saturate(h0, p.y_sat) - gp * h0
+    else:
+        cols[:-1] = z
+        cols[-1] = 0.0
+    return cols
 
 
 def _normal(ch, rec, dev, p, cols, nw, extra, rows):
