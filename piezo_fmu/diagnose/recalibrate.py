@@ -36,6 +36,7 @@ import numpy as np
 from .engine import predict
 from .fit import Fitter, Structure, free_names, get_value, set_value
 from .residuals import ACCEPT, full_residuals, residual_sets, spectral_peaks
+from .starts import with_params
 from .stats import compare, noise_level, tau_int
 
 __all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "channel_uncertainty", "mode_at", "ordinary_names", "recalibrate",
@@ -446,14 +447,8 @@ def _order(fitter, rc, struct, sat):
     trials = []
     q_now = fitter.quick(p)
     shares = (0.1, 0.25, 0.5)
-    qs = []
-    for share in shares:
-        q = p.copy()
-        tot = q.tau
-        q.tau, q.tau2 = tot * (1 - share), tot * share
-        qs.append(q)
-    screen = [(c, share, q) for c, share, q in zip(fitter.quick_many(qs), shares, qs)]
-    screen.sort(key=lambda t: t[0])
+    qs = [with_params(p, tau=p.tau * (1 - share), tau2=p.tau * share) for share in shares]
+    screen = sorted(zip(fitter.quick_many(qs), shares, qs), key=lambda t: t[0])
     if _promise(fitter, q_now, screen[0][0]) < SCREEN:
         rc.report["amplifier_order"] = {"value": 1, "why_not_2": "a second lag stage does not improve the fit"}
         return False
@@ -489,8 +484,7 @@ def _lags(fitter, rc, struct, sat):
         q = p.copy()
         q.lag_x, q.lag_us = lx, lu
         # a lag trades off against the amplifier's lag: screened at three lags
-        scales = (0.7, 1.0, 1.4)
-        best = min(zip(fitter.quick_many(_scaled(q, k) for k in scales), scales))
+        best = min(zip(fitter.quick_many(_scaled(q, k) for k in (0.7, 1.0, 1.4)), (0.7, 1.0, 1.4)))
         screen.append((best[0], _scaled(q, best[1])))
     screen.sort(key=lambda t: t[0])
     changed = False
