@@ -73,3 +73,48 @@ def test_only_a_model_with_the_cached_stroke_is_counted_as_chain_only_work():
         w0 = fitter.work
         fitter.quick(q)
         assert fitter.work - w0 == unit, q
+
+
+def test_a_grid_on_the_two_threads_counts_and_caches_as_one_evaluation_after_another():
+    # quick_many spreads a screening grid over the worker threads; what it returns, the work it
+    # counts and the strokes it leaves cached must be those of quick() called in order, also when
+    # more distinct strokes pass than the cache keeps (first in, first out) and one comes back
+    # after it was dropped - else the point where the search budget ends depends on the threads
+    fitter_a, p = _fitter()
+    fitter_b, _ = _fitter()
+    same, other = _variants(p)
+    more = []
+    for k in (1.3, 1.6, 1.9):
+        q = p.copy()
+        q.tau = k * p.tau
+        more.append(q)
+    grid = [p] + same + other + more + [p] + same[:2] + [other[0]]
+    assert len({fitter_a._stroke_key(q) for q in grid}) > fit.STROKES_KEPT
+    seq = [fitter_a.quick(q, drift=True) for q in grid]
+    assert fitter_b.quick_many(grid, drift=True) == seq
+    assert fitter_b.work == fitter_a.work
+    assert list(fitter_b._strokes) == list(fitter_a._strokes)
+    # (p is evicted by the six new strokes after it: counting by the cache at the start of the
+    # batch alone would have called its return chain-only)
+    unit = fitter_a.n_samples + fit.EVAL_OVERHEAD
+    assert fitter_a.work == unit * (1 + fit.CHAIN_ONLY_WEIGHT * 4 + 3 + 3 + 1 + fit.CHAIN_ONLY_WEIGHT * 2
+                                    + 1)
+
+
+def test_work_started_on_a_worker_thread_runs_there_in_order():
+    # a fit run on a worker (the two refits without weak findings) computes its own Jacobian
+    # columns: had they been queued behind their callers, both workers would wait forever
+    import threading
+
+    from piezo_fmu.diagnose import workers
+
+    got = []
+    t = threading.Thread(target=lambda: got.append(workers.each(
+        lambda a: (threading.current_thread().name, workers.each(lambda b: a * b, [1, 2, 3])), [1, 2])),
+        daemon=True)
+    t.start()
+    t.join(30.0)
+    assert got, "nested work waited for itself"
+    (name1, row1), (name2, row2) = got[0]
+    assert row1 == [1, 2, 3] and row2 == [2, 4, 6]
+    assert name1.startswith("diagnose-pool") and name2.startswith("diagnose-pool")
