@@ -153,6 +153,11 @@ def _kernels():
                     row[k] = s - r
         return out
 
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def section(sos, s):
+        # one second-order section's coefficients [b0 b1 b2 1 a1 a2]: b0, b1, b2, a1, a2
+        return sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
+
     @numba.njit(cache=True, nogil=True)
     def sos_run(sos, x, gain, c0, dc, out):
         # scipy's sosfilt recursion (transposed direct form II, from rest), bit for bit, on every
@@ -171,11 +176,7 @@ def _kernels():
             for k in range(m):
                 out[0, k] = x[0, k] * gain - c0[0] if settled else x[0, k] * gain
             for s in range(ns):
-                b0 = sos[s, 0]
-                b1 = sos[s, 1]
-                b2 = sos[s, 2]
-                a1 = sos[s, 4]
-                a2 = sos[s, 5]
+                b0, b1, b2, a1, a2 = section(sos, s)
                 s1 = 0.0
                 s2 = 0.0
                 for k in range(m):
@@ -194,11 +195,7 @@ def _kernels():
             for i in range(n):
                 out[i, k] = x[i, k] * gain - c0[i] if settled else x[i, k] * gain
             for s in range(ns):
-                b0 = sos[s, 0]
-                b1 = sos[s, 1]
-                b2 = sos[s, 2]
-                a1 = sos[s, 4]
-                a2 = sos[s, 5]
+                b0, b1, b2, a1, a2 = section(sos, s)
                 for i in range(n):
                     xi = out[i, k]
                     yi = b0 * xi + z1[s, i]
