@@ -164,8 +164,6 @@ STROKES_KEPT = 4         # strokes cached per fitter (a screening walks one stro
 MODE_ZETA_MIN = 0.007
 
 
-
-
 def _gain_offset(pr, y, basis, bb, by, k):
     """Least squares ``y ~ c[0] pr + c[1:] @ basis[:k]`` from the precomputed ``bb = basis @ basis.T``
     and ``by = basis @ y``: returns ``(c, rhs)`` (``rhs`` the normal equations' right side)."""
@@ -339,12 +337,6 @@ class Fitter:
         self.spend(2.0 + (len(p.weights) + p.n_cell_cols) / 4.0)
         return solve_linear(self.recs, self.dev, p, self.lam, drift_terms=struct.drift_terms,
                             replays=self.replays(p), gn_iter=gn_iter)
-
-    def each(self, f, items):
-        """``[f(x) for x in items]`` on the two threads, for evaluations and fits that do not touch
-        the strokes' cache (:meth:`varpro`, :meth:`fit` with the weights re-solved): independent,
-        the same results and the same work counted as one after another."""
-        return workers.each(f, items)
 
     def cost(self, p: Params, rows="train"):
         r = residuals(self.recs, self.dev, p, self.lam, self.replays(p), rows=rows)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 
+from . import workers
 from .catalogue import CATALOGUE, plausible, propose, shape_size
 from .decide import (CONFIDENT, at_bound, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score, told_apart)
@@ -159,8 +160,9 @@ def _without_weak(fitter, current, struct, p_base, before):
         v = get_value(before, n, fitter.dev)
         if math.isfinite(v) and v > 0.0:
             set_value(restored, n, v, fitter.dev)
-    # (two independent fits with the weights re-solved, on the two threads)
-    fits = fitter.each(lambda q: fitter.fit(q, struct, max_nfev=6), [stripped, restored])
+    # (two independent fits with the weights re-solved, on the two threads: they do not touch the
+    # strokes' cache; fits with the weights held do, and are not run side by side)
+    fits = workers.each(lambda q: fitter.fit(q, struct, max_nfev=6), [stripped, restored])
     return min(fits, key=lambda fr: fr.cost).params
 
 
@@ -243,9 +245,10 @@ def _starts(fitter, name, current, held, struct, cctx, recal):
             alts.append((a, []))
     # the weights re-solved for each proposed dynamics (held weights fitted to other dynamics would
     # make a good proposal look bad)
-    # (each start in its own copy: independent, on the two threads)
+    # (each start in its own copy: independent, on the two threads; varpro does not touch the
+    # strokes' cache, whose order decides the work counted)
     if name != "hysteresis_shape":
-        fitter.each(lambda x: fitter.varpro(x, struct.with_effect(name, 0, len(x.creep))),
+        workers.each(lambda x: fitter.varpro(x, struct.with_effect(name, 0, len(x.creep))),
                     [x for x in [start] + [a for a, _ in alts] if x is not None])
     return start, alts
 
