@@ -56,24 +56,20 @@ def _normal(ch, rec, dev, p, cols, nw, extra, rows):
     are ``cols`` through the channel's chain (the weights and the saturation's known part), then
     the offset and ``extra`` terms (``x``: the drift's rate and curvature; ``us``: a load
     pick-off's drift in the force)."""
+    lag = p.lag_x if ch == "x" else p.lag_us
+    cmat = np.empty((nw + 2 + extra, rec.n))
+    cmat[:nw + 1] = shift(at_samples(rec, chain(cols, ch, dev, p, rec.h)), lag)
+    cmat[nw + 1] = 1.0
     if ch == "x":
-        cmat = np.empty((nw + 2 + extra, rec.n))
-        cmat[:nw + 1] = shift(at_samples(rec, chain(cols, "x", dev, p, rec.h)), p.lag_x)
-        cmat[nw + 1] = 1.0
         if extra >= 1:
-            tl = shift(rec.t, p.lag_x)
+            tl = shift(rec.t, lag)
             cmat[nw + 2] = tl
         if extra >= 2:
             cmat[nw + 3] = tl * tl
-        y = rec.x
     else:
-        cmat = np.empty((nw + 2 + extra, rec.n))
-        cmat[:nw + 1] = shift(at_samples(rec, chain(cols, "us", dev, p, rec.h)), p.lag_us)
-        cmat[nw + 1] = 1.0
         for j in range(extra):              # the drift's rate and curvature terms in the force
-            cmat[nw + 2 + j] = shift(leak(dev.k_load * rec.t ** (j + 1), p.tau_leak, rec.dt), p.lag_us)
-        y = rec.us
-    return _gram(cmat, rec, rows), _gram_vec(cmat, y, rec, rows)
+            cmat[nw + 2 + j] = shift(leak(dev.k_load * rec.t ** (j + 1), p.tau_leak, rec.dt), lag)
+    return _gram(cmat, rec, rows), _gram_vec(cmat, getattr(rec, ch), rec, rows)
 
 
 def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_sensor_gain=True,
