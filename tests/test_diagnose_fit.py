@@ -118,3 +118,27 @@ def test_work_started_on_a_worker_thread_runs_there_in_order():
     (name1, row1), (name2, row2) = got[0]
     assert row1 == [1, 2, 3] and row2 == [2, 4, 6]
     assert name1.startswith("diagnose-pool") and name2.startswith("diagnose-pool")
+
+
+def test_costs_with_the_weights_re_solved_leave_the_models_asked_about_untouched():
+    # solved_many screens the amplifier's order and the sampling lags with each point's weights
+    # re-solved: its costs are varpro's on a copy, in order, and the models passed in keep the
+    # weights the caller gave them (a screen must not move the model it starts from)
+    from piezo_fmu.diagnose.fit import Structure
+
+    fitter_a, p = _fitter()
+    fitter_b, _ = _fitter()
+    struct = Structure()
+    same, other = _variants(p)
+    grid = [p] + other
+    kept = [np.array(q.weights, float) for q in grid]
+    seq = []
+    for q in grid:
+        r = fitter_a.varpro(q.copy(), struct)
+        seq.append(float(r @ r))
+    assert fitter_b.solved_many(grid, struct) == seq
+    assert fitter_b.work == fitter_a.work
+    assert all(np.array_equal(q.weights, w) for q, w in zip(grid, kept))
+    # the weights held cost more where the dynamics changed (the point of re-solving them)
+    held = fitter_a.quick_many(other[:1])
+    assert held[0] > seq[1]

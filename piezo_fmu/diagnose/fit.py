@@ -376,6 +376,15 @@ class Fitter:
         return workers.each(lambda i: self._quick_of(ps[i], self._predictions(ps[i], hss[i]), drift),
                             range(len(ps)))
 
+    def solved_many(self, ps, struct: Structure, copy=True):
+        """Training cost of every parameter set in ``ps`` with its linear parameters re-solved
+        (:meth:`varpro`, each in a copy unless ``copy`` is False), in order, on the two threads."""
+        def solved(p):
+            r = self.varpro(p.copy() if copy else p, struct)
+            return float(r @ r)
+
+        return workers.each(solved, list(ps))
+
     def _quick_of(self, p: Params, preds, drift):
         """:meth:`quick`'s cost from the predictions ``preds`` of ``p`` (weights held)."""
         sse = 0.0
@@ -557,15 +566,7 @@ class Fitter:
                 else:
                     set_value(p, n, v, self.dev)
             ps.append(p)
-        if solve is None:
-            costs = self.quick_many(ps)
-        else:
-            # (each point's weights re-solved in its own copy: independent, on the two threads)
-            def solved(p):
-                r = self.varpro(p, solve)
-                return float(r @ r)
-
-            costs = workers.each(solved, ps)
+        costs = self.quick_many(ps) if solve is None else self.solved_many(ps, solve, copy=False)
         best, best_c = None, math.inf
         for p, c in zip(ps, costs):
             if c < best_c:

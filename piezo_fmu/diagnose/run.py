@@ -28,11 +28,12 @@ from .blas import single_thread
 from .engine import Device, Params, device_from_model, params_from_model, predict
 from .fit import Fitter, Structure, strip
 from .heap import kept
-from .recalibrate import channel_uncertainty, ordinary_names, recalibrate, revisit, uncertainty
+from .recalibrate import ordinary_names, recalibrate, revisit
 from .recordings import load_recordings, make_recordings
 from .residuals import residual_peaks
 from .results import assemble, file_predictions, localise, rmse_as_given, to_model
 from .select import ACCEPT, full_residuals, noise_levels, residual_sets, select
+from .uncertainty import channel_uncertainty, uncertainty
 from .varpro import solve_linear
 
 __all__ = ["ACCEPT", "Diagnosis", "analyse", "load_recordings"]
