@@ -120,25 +120,25 @@ def test_work_started_on_a_worker_thread_runs_there_in_order():
     assert name1.startswith("diagnose-pool") and name2.startswith("diagnose-pool")
 
 
-def test_costs_with_the_weights_re_solved_leave_the_models_asked_about_untouched():
-    # solved_many screens the amplifier's order and the sampling lags with each point's weights
-    # re-solved: its costs are varpro's on a copy, in order, and the models passed in keep the
-    # weights the caller gave them (a screen must not move the model it starts from)
+def test_costs_with_the_weights_re_solved_are_varpros_one_after_another():
+    # solved_many re-solves each model's weights on the worker threads: its costs, the weights it
+    # leaves in each model and the work it counts are those of varpro called in order
     from piezo_fmu.diagnose.fit import Structure
 
     fitter_a, p = _fitter()
     fitter_b, _ = _fitter()
     struct = Structure()
     same, other = _variants(p)
-    grid = [p] + other
-    kept = [np.array(q.weights, float) for q in grid]
+    grid_a = [q.copy() for q in [p] + other]
+    grid_b = [q.copy() for q in [p] + other]
     seq = []
-    for q in grid:
-        r = fitter_a.varpro(q.copy(), struct)
+    for q in grid_a:
+        r = fitter_a.varpro(q, struct)
         seq.append(float(r @ r))
-    assert fitter_b.solved_many(grid, struct) == seq
+    assert fitter_b.solved_many(grid_b, struct) == seq
     assert fitter_b.work == fitter_a.work
-    assert all(np.array_equal(q.weights, w) for q, w in zip(grid, kept))
+    assert all(np.array_equal(a.weights, b.weights) for a, b in zip(grid_a, grid_b))
+    assert not np.array_equal(grid_b[1].weights, other[0].weights)      # solved in place
     # the weights held cost more where the dynamics changed (the point of re-solving them)
     held = fitter_a.quick_many(other[:1])
     assert held[0] > seq[1]

@@ -376,11 +376,11 @@ class Fitter:
         return workers.each(lambda i: self._quick_of(ps[i], self._predictions(ps[i], hss[i]), drift),
                             range(len(ps)))
 
-    def solved_many(self, ps, struct: Structure, copy=True):
-        """Training cost of every parameter set in ``ps`` with its linear parameters re-solved
-        (:meth:`varpro`, each in a copy unless ``copy`` is False), in order, on the two threads."""
+    def solved_many(self, ps, struct: Structure):
+        """Training cost of every parameter set in ``ps`` with its linear parameters re-solved in
+        place (:meth:`varpro`; pass copies to keep the originals), in order, on the two threads."""
         def solved(p):
-            r = self.varpro(p.copy() if copy else p, struct)
+            r = self.varpro(p, struct)
             return float(r @ r)
 
         return workers.each(solved, list(ps))
@@ -566,7 +566,7 @@ class Fitter:
                 else:
                     set_value(p, n, v, self.dev)
             ps.append(p)
-        costs = self.quick_many(ps) if solve is None else self.solved_many(ps, solve, copy=False)
+        costs = self.quick_many(ps) if solve is None else self.solved_many(ps, solve)
         best, best_c = None, math.inf
         for p, c in zip(ps, costs):
             if c < best_c:
