@@ -28,6 +28,7 @@ from . import workers
 from .catalogue import CATALOGUE, plausible, propose, shape_size
 from .decide import (CONFIDENT, at_bound, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score, told_apart)
+from .delays import refine_delay
 from .fit import Fitter, free_names, get_value, set_value, strip
 from .loopshape import (SHAPE_BESIDE_BEYOND, SHAPE_BEYOND, SHAPE_BEYOND_NOMINAL, SHAPE_BEYOND_REMOVED,
                         SHAPE_EXPLAINED, SHAPE_EXPLAINED_EACH, SHAPE_FURTHER_EXPLAINED, SHAPE_PARTIAL_BEYOND,
@@ -40,7 +41,7 @@ from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, creep_before_drift, 
 from .starts import swapped_mode
 from .stats import compare
 
-__all__ = ["ACCEPT", "CONFIDENT", "confidence", "full_residuals", "noise_levels", "put_in", "refine_delay",
+__all__ = ["ACCEPT", "CONFIDENT", "confidence", "full_residuals", "noise_levels", "put_in",
            "residual_sets", "select"]
 
 LOOP_HELDOUT_BETA = (0.8, 1.25)   # a finer loop the BIC refuses: the held-out share it must take...
@@ -88,34 +89,6 @@ def coupled(fitter, name, struct, s_new):
         if n in ("tau", "y_sat") or n not in old or mech in group or (n in fitter.ordinary and name in FAST):
             keep.append(n)
     return keep
-
-
-def refine_delay(fitter, p, struct, reach=3):
-    """Step the integer delay while the training cost, with the lag re-searched and the weights
-    re-solved (the loop's width trades off against lag, so they must move with it), falls."""
-    dt = fitter.dt
-    nd = int(round(p.delay / dt))
-
-    def at(k, tau):
-        q = p.copy()
-        q.delay = k * dt
-        lo = max(fitter.bounds("tau")[0], tau / 4)
-        return fitter.fit_scalar(q, struct, "tau", quick=False, bounds=(lo, tau * 4), xatol=0.02)
-
-    best, best_c = at(nd, p.tau)
-    for direction in (1, -1):
-        moved = False
-        for k in range(1, reach + 1):
-            if nd + direction * k < 1:
-                break
-            q, c = at(nd + direction * k, max(best.tau - direction * dt, p.tau / 10))
-            if c < best_c:
-                best, best_c, moved = q, c, True
-            else:
-                break
-        if moved:
-            break
-    return best
 
 
 def _refine(fitter, tried_loop, struct, p_base, recal, removed, explained, noise):
@@ -277,10 +250,11 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
     sets_new, _ = residual_sets(fitter, fr.params)
     k = s_new.n_params() - struct.n_params() - sum(ITEM_K[i] for i in dropped)
     cmp = compare(sets_cur, sets_new, k, noise)
-    ok = plausible(name, fitter, current, fr.params, cmp, cctx)
+    ok = plausible(name, fitter, current, fr.params, cmp, cctx, s_new)
     bounds = at_bound(fitter, fr.params, own_parameters(name, struct, s_new))
     passed, why = passes(cmp, name, ok, bounds)
-    step(f"round {rnd + 1}: {name}: " + ("passes" if passed else f"fails ({why})") + "; held-out rmse "
+    step(f"round {rnd + 1}: {name}: " + ((f"passes ({ok[1]})" if ok[1] else "passes") if passed else f"fails ({why})")
+         + "; held-out rmse "
          + ", ".join(f"{c} {v['rmse_before']:.4g} -> {v['rmse_after']:.4g} (explains {v['explained']:.2f}, "
                      f"held-out beta {v['beta_heldout']:.2f}, z {v['z_heldout']:.1f})"
                      for c, v in cmp["channels"].items())
@@ -522,7 +496,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             fr = fitter.fit(strip(current, s_wo, p_base.thresholds), s_wo, max_nfev=5)
             cmp = compare(residual_sets(fitter, fr.params)[0], sets_full,
                           struct.n_params() - s_wo.n_params(), noise)
-            ok = plausible(name, fitter, fr.params, current, cmp, cctx)
+            ok = plausible(name, fitter, fr.params, current, cmp, cctx, struct)
             passed, why = passes(cmp, name, ok)
             if passed and name == "hysteresis_shape":
                 ordinary = loop_beside(fitter, current, fr.params, struct, noise, p_base.thresholds)

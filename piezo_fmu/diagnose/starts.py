@@ -5,7 +5,8 @@ A lightly damped mode is narrow, and the recalibrated first mode may have bent t
 did not have (rig-d5-000: a 205 Hz mode pulled the first mode from 484 to 997 Hz) or be that further
 mode (rig-119, rig-d5-168): a start at the right frequency screens worse than no mode at all until
 the first mode and the lag it had absorbed are searched again. Used by :func:`.catalogue.propose`
-(``extra_resonance``) and :mod:`.select` (the swapped start). The grid helpers (:func:`log_grid`,
+(``extra_resonance``) and :mod:`.select` (the swapped start); :func:`swap_lag_account` is the rival
+:func:`.catalogue.plausible` weighs a swap against (the device's own mode with lags beside it). The grid helpers (:func:`log_grid`,
 :func:`with_params`) live here, below the catalogue, which screens its other mechanisms with them.
 """
 from __future__ import annotations
@@ -14,11 +15,12 @@ import math
 
 import numpy as np
 
-from .fit import Fitter, Structure
+from .delays import delay_search, refine_delay
+from .fit import Fitter, Structure, free_names, strip
 
 __all__ = ["MODE_RESEARCH", "MODE_RESEARCH_PEAKS", "MODE_RESEARCH_ZETA", "MODE_SWAP_STARTS", "distinct",
-           "first_mode_searched", "further_mode_start", "lag_searched", "log_grid", "swapped_mode",
-           "with_params"]
+           "first_mode_searched", "further_mode_start", "lag_searched", "log_grid", "swap_lag_account",
+           "swapped_mode", "with_params"]
 
 MODE_SWAP_STARTS = (0.4, 0.63, 1.6, 2.5, 4.0, 6.3)   # first mode restarted at these x the old one
 # the first mode re-searched under a further mode's start: at these multiples of where it was and
@@ -149,3 +151,39 @@ def lag_searched(fitter: Fitter, q, struct: Structure, tau):
     """``(q, cost)``: a mode's start, the lag it had absorbed re-searched in ``tau`` / 5 .. 2 ``tau``."""
     return fitter.fit_scalar(q, struct, "tau", quick=True,
                              bounds=(max(fitter.bounds("tau")[0], tau / 5), tau * 2), xatol=0.03)
+
+
+def swap_lag_account(fitter: Fitter, p_before, p_after, struct: Structure):
+    """The lags' account of a swap (``p_after``: a further mode in the recalibrated first mode's
+    place, the first mode moved elsewhere): the model without the further mode, its mode as the
+    device's first, with the lags a moved, damped "mode" may stand for re-fitted - a second
+    amplifier stage and a whole-sample delay (stepped when ``struct`` has one, searched when not).
+    Started from ``p_before`` and from the further mode's values in each pick-off the channels
+    allow; the best :class:`.fit.FitResult` (its structure has the delay when one was searched).
+    """
+    f_res, z_res = p_after.res
+    s_alt = struct.without("extra_resonance")
+    free = free_names(s_alt, list(dict.fromkeys(fitter.ordinary + ["tau2", "mech_f", "mech_zeta"])))
+    starts = [strip(p_before, s_alt)]
+    for pick in (("contact", "load") if any("us" in r.channels() for r in fitter.recs) else ("stack",)):
+        q = with_params(p_after, res=None, pick=pick)
+        q.set_mode(fitter.dev, f=f_res, zeta=max(z_res, 1.2 * fitter.bounds("mech_zeta")[0]))
+        starts.append(q)
+    best = None
+    for q in starts:
+        if q.tau2 <= 0:        # a second stage: the recalibration's shares of the lag, the best screened
+            split = [with_params(q, tau=q.tau * (1 - sh), tau2=q.tau * sh) for sh in (0.1, 0.25, 0.5)]
+            q = split[int(np.argmin(fitter.quick_many(split)))]
+        fr = fitter.fit(q, s_alt, free=free, max_nfev=10, held=True)
+        if best is None or fr.cost < best.cost:
+            best = fr
+    s_d = s_alt if "time_delay" in struct.effects else s_alt.with_effect("time_delay")
+    q = best.params
+    if "time_delay" not in struct.effects:
+        q, _ = delay_search(fitter, q, s_d, fitter.dt, q.tau2 > 0)
+    q = refine_delay(fitter, q, s_d)
+    if q.delay != best.params.delay:
+        fr = fitter.fit(q, s_d, free=free, max_nfev=8, held=True)
+        if fr.cost < best.cost:
+            best = fr
+    return best
