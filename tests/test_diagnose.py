@@ -1618,8 +1618,9 @@ def test_recognition_scores_count_names_hidden_mechanisms_and_kinds():
     assert s["silent_miss_case_rate"] == pytest.approx(1 / 5)
     assert s["clean_nothing_missing_rate"] == 0.0
     assert s["by_effect"]["hysteresis_shape"] == {"true": 2, "recognised": 1, "named_wrongly": 0, "candidate": 1,
-                                                  "silent": 0}
-    assert s["by_effect"]["creep"] == {"true": 2, "recognised": 1, "named_wrongly": 0, "candidate": 0, "silent": 1}
+                                                  "silent": 0, "twin": 0}
+    assert s["by_effect"]["creep"] == {"true": 2, "recognised": 1, "named_wrongly": 0, "candidate": 0, "silent": 1,
+                                       "twin": 0}
     assert s["by_effect"]["time_delay"]["named_wrongly"] == 1
     assert s["by_effect"]["time_delay"]["silent"] == 0                 # missed beside a flagged residual
     assert s["by_variant"] == {"hysteresis_shape: knee": {"true": 1, "recognised": 1},
@@ -1698,6 +1699,32 @@ def test_the_ceiling_table_counts_what_the_tests_see_and_why_not():
     table = markdown(s)
     assert "| time_delay | 3 | 33 % (1/3) | the fitted delay is at a bound (2) |" in table
     assert "| creep | 0 |" not in table
+
+
+def test_mechanisms_with_an_ordinary_twin_are_counted_apart_beside_the_rate_over_all():
+    from piezo_fmu.diagnose.scoring import markdown, summarise
+
+    same = {"twin": "no delay, the one channel sampled 1 sample(s) late", "distance": 0.0, "same": True}
+    far = {"twin": "no delay, the amplifier's output stage slower", "distance": 5.5, "same": False}
+    results = [
+        {"group": "one channel", "truth": ["time_delay"], "named": [], "seconds": 1.0,
+         "twins": {"time_delay": same}},
+        {"group": "single", "truth": ["time_delay"], "named": ["time_delay"], "seconds": 1.0,
+         "twins": {"time_delay": far}},
+        {"group": "pair", "truth": ["time_delay", "creep"], "named": ["creep"], "seconds": 1.0,
+         "twins": {"time_delay": far}},
+        {"group": "single", "truth": ["creep"], "named": ["creep"], "seconds": 1.0, "twins": {}},
+    ]
+    s = summarise(results, ["creep", "time_delay"])
+    assert s["recognition_rate"] == pytest.approx(3 / 5)
+    assert s["twins"] == {"true": 1, "recognised": 0, "others_true": 4, "others_recognised": 3}
+    assert s["recognition_rate_beyond_twins"] == pytest.approx(3 / 4)
+    assert s["by_effect"]["time_delay"]["twin"] == 1
+    assert "1 of the 5 true mechanisms (time_delay 1), 0 of them named; recognised among the others " \
+           "75 % (3/4)" in markdown(s)
+    # a study without twins measured (synth) reports none
+    assert "twins" not in summarise([{k: v for k, v in r.items() if k != "twins"} for r in results],
+                                    ["creep", "time_delay"])
 
 
 def test_a_residual_that_looks_like_noise_does_not_end_the_search():

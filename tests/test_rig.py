@@ -318,3 +318,31 @@ def test_pi9_misfit_is_zero_for_a_nine_operator_loop_and_matches_brute_force():
     ones = np.ones(t.size)
     _, resid = nnls(np.column_stack([cols, ones, -ones]), x2)
     assert pi9_misfit(ua, x2, 1, 40.0) <= resid / np.sqrt(t.size) * (1 + 1e-6)
+
+
+def test_an_ordinary_twin_is_measured_with_the_rigs_own_equations():
+    # a delay of whole samples on the one recorded channel is that channel's sampling lag (the
+    # same record); a delay on two channels is not a slower amplifier (rig-001: 5.5 noise rms
+    # from the best one); a further mode at 587 Hz beside a first mode at 6.6 kHz, far above the
+    # 1.56 kHz Nyquist frequency, is a first mode at 587 Hz (rig-d8-037: 0.37 noise rms)
+    from piezo_fmu.rig.twins import TWIN_SAME
+
+    specs = {s.case_id: s for s in cases()}
+    one = generate(specs["rig-122"], twins=True)
+    assert one.truth["channels"] == ["x"]
+    got = one.truth["ordinary_twins"]["time_delay"]
+    assert got["same"] and got["distance"] < 0.01 and "sampled 1 sample(s) late" in got["twin"], got
+    plain = generate(specs["rig-122"])
+    assert "ordinary_twins" not in plain.truth
+    np.testing.assert_array_equal(plain.x, one.x)             # measuring twins leaves the record alone
+    two = generate(specs["rig-001"], twins=True).truth
+    got = two["ordinary_twins"]["time_delay"]
+    assert not got["same"] and got["distance"] > TWIN_SAME, got
+    # the twin's lag was searched towards the delay it stands for
+    assert got["amp_tau_s"] > two["params"]["amplifier.tau_output"]["value"], got
+    spec = next(s for s in cases(draw=8) if s.case_id == "rig-d8-037")
+    t = generate(spec, twins=True).truth
+    p = t["params"]
+    assert p["mechanics.f1"]["value"] > 0.5 * p["rate.fs"]["value"]
+    got = t["ordinary_twins"]["extra_resonance"]
+    assert got["same"] and got["distance"] < 1.0, got

@@ -22,9 +22,10 @@ Public API
 ----------
 ``cases(quick=False)``
     The evaluation set: a list of ``CaseSpec`` (deterministic; 185 cases, or 16 short ones).
-``generate(spec)``
+``generate(spec, twins=False)``
     Simulate one case: a ``RigRecording`` with ``time`` [s], ``u`` [V], ``x`` [um] and/or
-    ``us`` [V] (an absent channel is None) and ``truth``.
+    ``us`` [V] (an absent channel is None) and ``truth`` (with ``twins``, also each present
+    delay's and further mode's closest *ordinary twin*, ``twins.py``).
 ``write_csv(rec, path)``
     ``time,u,x,us`` (present channels), one ``#`` line of units, nothing of the truth.
 
@@ -38,7 +39,11 @@ off-catalogue effect or None), ``params`` (every drawn parameter as ``{value, un
 ``visibility`` and ``visibility_beyond_affine`` (per effect and channel: rms of the effect over
 the channel's noise rms, see ``caseset``), ``nuisance_visibility`` (the first mode and the
 sampling lag, which are nominal physics), ``pi9_misfit``, ``segments`` (the programme),
-``fs``, ``duration``, ``channels``, ``case_id``, ``seed``, ``attempt``.
+``fs``, ``duration``, ``channels``, ``case_id``, ``seed``, ``attempt``; with ``twins``,
+``ordinary_twins`` (per effect: the twin, its distance from the record in noise rms beyond
+affine, and ``same`` when below 3: the record does not tell the effect from ordinary physics
+re-tuned, a further mode from a first mode at its frequency, a delay from a slower amplifier or,
+on one channel, a sampling lag).
 
 Catalogue names: ``creep``, ``sensor_leakage``, ``amplifier_current_limit``, ``time_delay``,
 ``extra_resonance``, ``thermal_drift``, ``hysteresis_shape``. Controls (not catalogue names; a

@@ -40,6 +40,7 @@ from .excitation import choose_kinds, programme
 from .hysteresis import draw_hysteresis, plays
 from .plant import CATALOGUE, CONTROLS, Effects, Plant, Simulator, lag_one, noise, quantise
 from .recording import RigRecording
+from .twins import ordinary_twins
 
 GROUPS = ("clean", "single", "pair", "control", "one_channel")
 VISIBLE = 3.0        # present: max over channels of visibility_beyond_affine >= VISIBLE
@@ -341,7 +342,7 @@ def _fail(why: list | None, reason: str) -> None:
         why.append(reason)
 
 
-def _attempt(spec: CaseSpec, attempt: int, why: list | None = None) -> RigRecording | None:
+def _attempt(spec: CaseSpec, attempt: int, why: list | None = None, twins: bool = False) -> RigRecording | None:
     rng = np.random.default_rng([spec.seed, attempt])
     channels = ["x", "us"] if spec.channels == "both" else [spec.channels]
     present = list(spec.mechanisms) + ([spec.control] if spec.control else [])
@@ -434,11 +435,11 @@ def _attempt(spec: CaseSpec, attempt: int, why: list | None = None) -> RigRecord
     if base_fit > BASE_MISFIT:           # the noise was lowered too far for the base loop
         return _fail(why, 'base loop: noise lowered too far')
     return _finish(spec, attempt, sim, segments, eff, full, vis, aff, channels, shape_fit,
-                   base_fit, dropped)
+                   base_fit, dropped, twins)
 
 
 def _finish(spec, attempt, sim, segments, eff, full, vis, aff, channels, shape_fit,
-            base_fit, dropped) -> RigRecording:
+            base_fit, dropped, twins=False) -> RigRecording:
     plant, u = sim.plant, sim.u
     n = u.size
     unit_noise = _unit_noise(spec, attempt, n, plant.noise_colour)
@@ -475,18 +476,23 @@ def _finish(spec, attempt, sim, segments, eff, full, vis, aff, channels, shape_f
         "segments": segments,
         "params": params,
     }
+    if twins:
+        truth["ordinary_twins"] = ordinary_twins(sim, eff, full, channels)
     t = np.arange(n) / plant.fs
     return RigRecording(time=t, u=np.asarray(u, dtype=float),
                         x=rec["x"] if "x" in channels else None,
                         us=rec["us"] if "us" in channels else None, truth=truth)
 
 
-def generate(spec: CaseSpec) -> RigRecording:
+def generate(spec: CaseSpec, twins: bool = False) -> RigRecording:
     """Simulate one case (deterministic: the same spec gives identical arrays).
 
     Parameters
     ----------
     spec : CaseSpec
+    twins : bool
+        Also measure each present delay's and further mode's closest ordinary twin
+        (``truth["ordinary_twins"]``, see :func:`.twins.ordinary_twins`; seconds per case).
 
     Returns
     -------
@@ -494,7 +500,7 @@ def generate(spec: CaseSpec) -> RigRecording:
         ``time`` [s], ``u`` [V], ``x`` [um] and/or ``us`` [V], and ``truth``.
     """
     for attempt in range(12):
-        rec = _attempt(spec, attempt)
+        rec = _attempt(spec, attempt, twins=twins)
         if rec is not None:
             return rec
     raise RuntimeError(f"case {spec.case_id}: no draw met the visibility requirements")
