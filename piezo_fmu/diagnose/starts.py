@@ -6,8 +6,9 @@ did not have (rig-d5-000: a 205 Hz mode pulled the first mode from 484 to 997 Hz
 mode (rig-119, rig-d5-168): a start at the right frequency screens worse than no mode at all until
 the first mode and the lag it had absorbed are searched again. Used by :func:`.catalogue.propose`
 (``extra_resonance``) and :mod:`.select` (the swapped start); :func:`swap_lag_account` is the rival
-:func:`.catalogue.plausible` weighs a swap against (the device's own mode with lags beside it). The grid helpers (:func:`log_grid`,
-:func:`with_params`) live here, below the catalogue, which screens its other mechanisms with them.
+:func:`.catalogue.plausible` weighs a swap against (the device's own mode with lags beside it).
+The grid helpers (:func:`log_grid`, :func:`with_params`) live here, below the catalogue, which
+screens its other mechanisms with them.
 """
 from __future__ import annotations
 
