@@ -57,10 +57,10 @@ def further_mode_start(fitter: Fitter, p, struct: Structure, ctx):
     chans = ctx["channels"]
     fmax = 0.45 / dt
     fs = log_grid(10.0, fmax, 12)
-    for pk in ctx.get("peaks", []):
-        if 5.0 < pk < fmax:
-            # a fine comb around each peak of the residual: a lightly damped mode is narrow
-            fs += [pk * (1 + 0.004 * k) for k in range(-3, 4)]
+    in_band = [pk for pk in ctx.get("peaks", []) if 5.0 < pk < fmax]
+    for pk in in_band:
+        # a fine comb around each peak of the residual: a lightly damped mode is narrow
+        fs += [pk * (1 + 0.004 * k) for k in range(-3, 4)]
     # the mode adds phase lag below f_n that the amplifier lag had absorbed: the best grid
     # points get their lag re-searched
     # where it acts: after the mechanics (displacement) or on the drive (every channel)
@@ -75,8 +75,7 @@ def further_mode_start(fitter: Fitter, p, struct: Structure, ctx):
     # without the mode, with the first mode re-searched 0.13 x): each residual peak is
     # screened with the first mode re-searched (the best MODE_RESEARCH_PEAKS of them: the search
     # is the screening's largest cost on long records)
-    peak_qs = [with_params(p, res=(f, 0.015), res_at=at)
-               for f in distinct(pk for pk in ctx.get("peaks", []) if 5.0 < pk < fmax) for at in places]
+    peak_qs = [with_params(p, res=(f, 0.015), res_at=at) for f in distinct(in_band) for at in places]
     at_peaks = sorted((c, i, q) for i, (c, q) in enumerate(zip(fitter.quick_many(peak_qs), peak_qs)))
     starts += [first_mode_searched(fitter, q, ctx) for _, _, q in at_peaks[:MODE_RESEARCH_PEAKS]]
     best, best_c = None, math.inf
@@ -92,16 +91,15 @@ def further_mode_start(fitter: Fitter, p, struct: Structure, ctx):
     # (Not by the solve's own residual: one Gauss-Newton step of the saturation from weights fitted
     # to other dynamics is far from settled; on rig-015 it ranked a false 65 Hz peak start over the
     # true 154 Hz mode, 1.6e5 against 1.3e6, whose second step reached 8.0e3)
-    solved = [with_params(p, res=(f, z), res_at=at) for f in distinct(
-        pk for pk in ctx.get("peaks", []) if 5.0 < pk < fmax) for z in PEAK_SOLVED_ZETA for at in places]
-    if not solved:
+    peak_starts = [with_params(p, res=(f, z), res_at=at)
+                   for f in distinct(in_band) for z in PEAK_SOLVED_ZETA for at in places]
+    if not peak_starts:
         return best
-    solved.append(best.copy())
+    peak_starts.append(best.copy())
     s_mode = struct.with_effect("extra_resonance")
-    workers.each(lambda q: fitter.varpro(q, s_mode), solved)
-    costs = fitter.quick_many(solved)
-    i = int(np.argmin(costs))
-    return best if i == len(solved) - 1 else solved[i]
+    workers.each(lambda q: fitter.varpro(q, s_mode), peak_starts)
+    i = int(np.argmin(fitter.quick_many(peak_starts)))
+    return best if i == len(peak_starts) - 1 else peak_starts[i]
 
 
 def swapped_mode(fitter: Fitter, p, struct: Structure, ctx):
