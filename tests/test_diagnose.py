@@ -1550,6 +1550,32 @@ def test_a_lone_fast_creep_element_is_not_called_creep():
     assert float(why[0].split("(")[1].split(" ms")[0]) * 1e-3 < CREEP_SLOWEST_S
 
 
+
+def test_creep_whose_fast_element_settles_at_the_floor_is_fitted_again_without_it(monkeypatch):
+    # rig-d8-025: log-law creep (4.2 % of a step per decade from t0 = 19 ms) on a 253 Hz device
+    # sampled at 1.16 kHz. Two creep elements from none settled at 2.6 ms (the floor of the range,
+    # gain 0.15: the fast dynamics) and 0.50 s, and the bound refused the whole of creep, which
+    # explained 83 % of the residual. Without the element at the floor one element stays at 0.2 s
+    from piezo_fmu.diagnose import select
+    from piezo_fmu.diagnose.catalogue import CREEP_SLOWEST_S
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-d8-025")
+    assert rec.truth["mechanisms"] == ["creep"]
+    steps = []
+    res = analyse(raw, say=steps.append).result
+    assert res["final"]["effects"] == ["creep"], res["rejected"]
+    creep = next(f for f in res["findings"] if f["effect"] == "creep")
+    assert creep["confidence"] >= 0.5
+    assert len(creep["parameters"]["time_constants_s"]) == 1
+    assert CREEP_SLOWEST_S < creep["parameters"]["time_constants_s"][0] < 2.0
+    assert any("settled at the floor of its range" in m for m in steps), steps
+    for c in ("x", "us"):
+        assert res["final"]["rmse"][c] < 0.8 * res["baseline"]["rmse"][c]
+    # refused as a whole (the rule before), creep is missed
+    monkeypatch.setattr(select, "_creep_at_floor", lambda *a: None)
+    assert analyse(raw).result["final"]["effects"] == []
+
 def test_a_slow_creep_element_is_not_called_a_drift():
     # synth-1053 (the recognition study's case): creep with two elements, 0.31 s and 3.6 s (the
     # slower as long as the record, so under a unipolar drive it grows almost like a trend), and
