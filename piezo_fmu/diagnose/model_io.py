@@ -147,6 +147,8 @@ class Recording:
     sign: dict = field(default_factory=dict)   # channel -> +1/-1 (file = sign * model)
     split: str = ""          # how the held-out blocks were chosen (recordings.blocks)
     oversample: int = 1      # internal steps of the replay per sample (see engine.at_samples)
+    transient: np.ndarray | None = None   # bool per sample: just after a jump of the command
+                                          # (recordings.after_jumps; None: no sample is)
 
     @property
     def n(self):

@@ -39,7 +39,7 @@ from ..errors import UserError
 from ..recording import read_csv_table
 from .model_io import Recording
 
-__all__ = ["HELDOUT_EVERY", "INTERNAL_RATE", "N_BLOCKS", "activity", "blocks", "internal_steps", "load_recordings",
+__all__ = ["HELDOUT_EVERY", "INTERNAL_RATE", "N_BLOCKS", "activity", "after_jumps", "blocks", "internal_steps", "load_recordings",
            "make_recordings"]
 
 N_BLOCKS = 64
@@ -51,6 +51,10 @@ MAX_INTERNAL = 160000       # internal steps in one recording at most (20 s at I
 # of 0.2-3 ms, a current-limited step's ramp of tens of ms): a step at the end of one block
 # belongs to the next, where its response is
 RESPONSE_S = 0.05
+# a jump of the command: a change within one sample of at least this share of its span; the
+# RESPONSE_S after each are the fast dynamics' (the lags, a mode, the loop's transient), not where a
+# slow mechanism is judged (see :func:`after_jumps`)
+JUMP = 0.05
 # the training blocks are starved when they get less than this share of their due share (75 %)
 # of the command's activity
 STARVED = 0.1
@@ -86,6 +90,27 @@ def activity(u, dt):
     a = np.abs(np.diff(np.asarray(u, float), prepend=float(u[0])))
     k = max(1, int(round(RESPONSE_S / dt)))
     return np.convolve(a, np.full(k, 1.0 / k))[:a.size]
+
+
+def after_jumps(u, dt):
+    """Samples within :data:`RESPONSE_S` after a jump of the command ``u`` [V] (a change of at
+    least :data:`JUMP` of its span within one sample; ``dt`` [s] its step): True there.
+
+    A slow mechanism (creep, leakage, a drift) is judged on the held-out samples away from them.
+    The transient after a step is the fast dynamics' and the loop's: the PI weights, solved
+    again with any candidate, draw it in directions the training blocks need not fix (rig-d8-038,
+    three steps after a rest: creep re-solved the weights, its held-out step from rest rose with a
+    plateau, and 85 samples of it took the held-out share of its correction from 1.00 to 0.27).
+    """
+    u = np.asarray(u, float)
+    span = float(np.ptp(u))
+    du = np.abs(np.diff(u, prepend=float(u[0])))
+    jumps = np.flatnonzero(du >= JUMP * span) if span > 0 else np.zeros(0, int)
+    mask = np.zeros(u.size, bool)
+    k = max(1, int(round(RESPONSE_S / dt)))
+    for j in jumps:
+        mask[j:j + k] = True
+    return mask
 
 
 def blocks(n, n_blocks=N_BLOCKS, u=None, dt=None):
@@ -144,5 +169,6 @@ def make_recordings(raw, replay_rate=None):
         recs.append(Recording(r["name"], t - t[0], dt, u,
                               None if r.get("x") is None else np.asarray(r["x"], float),
                               None if r.get("us") is None else np.asarray(r["us"], float),
-                              held, float(t[0]), block, {}, how, internal_steps(dt, t.size, replay_rate)))
+                              held, float(t[0]), block, {}, how, internal_steps(dt, t.size, replay_rate),
+                              after_jumps(u, dt)))
     return recs

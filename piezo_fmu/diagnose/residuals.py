@@ -29,13 +29,20 @@ ACCEPT = {
 }
 
 
+# a slow mechanism is judged on the held-out samples away from the command's jumps when at least
+# this share of them is (else on all: a drive of jumps throughout leaves no slow part to judge apart)
+SLOW_HELDOUT_MIN = 0.5
+
+
 def residual_sets(fitter: Fitter, p):
-    """channel -> train/heldout residuals, held-out blocks, weight (model orientation)."""
+    """channel -> train/heldout residuals, held-out blocks, weight (model orientation); and, for a
+    slow mechanism, ``heldout_slow``/``blocks_slow``: the held-out residuals away from the
+    command's jumps (:func:`.recordings.after_jumps`, see :data:`SLOW_HELDOUT_MIN`)."""
     out = {}
     rps = fitter.replays(p)
     preds = [predict(r, fitter.dev, p, rp) for r, rp in zip(fitter.recs, rps)]
     for ch in ("x", "us"):
-        tr, ho, blocks = [], [], []
+        tr, ho, blocks, ho_q, blocks_q = [], [], [], [], []
         for r, pr in zip(fitter.recs, preds):
             y = getattr(r, ch)
             if y is None:
@@ -43,11 +50,20 @@ def residual_sets(fitter: Fitter, p):
             e = y - pr[ch]
             tr.append(e[r.train])
             ho.append(e[r.heldout])
+            quiet = r.heldout if r.transient is None else r.heldout & ~r.transient
+            ho_q.append(e[quiet])
             for b in np.unique(r.block[r.heldout]):
                 blocks.append(e[r.block == b])
+                inside = quiet & (r.block == b)
+                if inside.any():
+                    blocks_q.append(e[inside])
         if tr:
             out[ch] = {"train": np.concatenate(tr), "heldout": np.concatenate(ho), "blocks": blocks,
                        "lam": fitter.lam[ch]}
+            h_q = np.concatenate(ho_q)
+            quiet_enough = h_q.size >= SLOW_HELDOUT_MIN * out[ch]["heldout"].size
+            out[ch]["heldout_slow"] = h_q if quiet_enough else out[ch]["heldout"]
+            out[ch]["blocks_slow"] = blocks_q if quiet_enough else blocks
     return out, preds
 
 

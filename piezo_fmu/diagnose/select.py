@@ -249,7 +249,7 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
     fr, dropped = max(fits, key=lambda f: _bic_worth(fitter, f[0], f[1]))
     sets_new, _ = residual_sets(fitter, fr.params)
     k = s_new.n_params() - struct.n_params() - sum(ITEM_K[i] for i in dropped)
-    cmp = compare(sets_cur, sets_new, k, noise)
+    cmp = compare(sets_cur, sets_new, k, noise, slow=name in SLOW)
     ok = plausible(name, fitter, current, fr.params, cmp, cctx, s_new)
     bounds = at_bound(fitter, fr.params, own_parameters(name, struct, s_new))
     passed, why = passes(cmp, name, ok, bounds)
@@ -518,7 +518,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             s_wo = struct.without(name)
             fr = fitter.fit(strip(current, s_wo, p_base.thresholds), s_wo, max_nfev=5)
             cmp = compare(residual_sets(fitter, fr.params)[0], sets_full,
-                          struct.n_params() - s_wo.n_params(), noise)
+                          struct.n_params() - s_wo.n_params(), noise, slow=name in SLOW)
             ok = plausible(name, fitter, fr.params, current, cmp, cctx, struct)
             passed, why = passes(cmp, name, ok)
             if passed and name == "hysteresis_shape":

@@ -101,13 +101,16 @@ def tau_int(e, max_lag=None):
     return float(max(1.0, 1.0 + 2.0 * np.sum(ac[1:k])))
 
 
-def compare(before: dict, after: dict, k_extra: int, noise: dict):
+def compare(before: dict, after: dict, k_extra: int, noise: dict, slow: bool = False):
     """Compare two fitted models on the same data.
 
     ``before``/``after``: channel -> dict(train=residual array, heldout=residual array,
     blocks=list of held-out residual arrays per block, lam=weight). ``noise``: channel -> sigma.
+    ``slow``: the held-out statistics from ``heldout_slow``/``blocks_slow`` instead (a slow
+    mechanism, judged away from the command's jumps; see :func:`.residuals.residual_sets`).
     Returns a dict of statistics (see module docstring).
     """
+    held_key, blocks_key = ("heldout_slow", "blocks_slow") if slow else ("heldout", "blocks")
     out = {"channels": {}}
     align = {}
     lr = 0.0
@@ -123,7 +126,7 @@ def compare(before: dict, after: dict, k_extra: int, noise: dict):
         lr_c = n_eff * math.log(ratio)
         lr += lr_c
         n_eff_tot += n_eff
-        h0, h1 = b["heldout"], a["heldout"]
+        h0, h1 = b[held_key], a[held_key]
         mse0, mse1 = float(np.mean(h0 * h0)), float(np.mean(h1 * h1))
         n_ho = h0.size
         mse0_all = (sse0_tr + mse0 * n_ho) / (n_tr + n_ho)
@@ -160,8 +163,8 @@ def compare(before: dict, after: dict, k_extra: int, noise: dict):
             "rel_improvement": 1.0 - math.sqrt(mse1 / mse0) if mse0 > 0 else 0.0,
             "lr": lr_c, "n_eff": n_eff, "beta_heldout": beta, "z_heldout": z,
         }
-        s0 = np.array([float(x @ x) for x in b["blocks"]]) * b["lam"]
-        s1 = np.array([float(y @ y) for y in a["blocks"]]) * b["lam"]
+        s0 = np.array([float(x @ x) for x in b[blocks_key]]) * b["lam"]
+        s1 = np.array([float(y @ y) for y in a[blocks_key]]) * b["lam"]
         d_blocks = (s0, s1) if d_blocks is None else (d_blocks[0] + s0, d_blocks[1] + s1)
     out["lr"] = lr
     out["df"] = k_extra
