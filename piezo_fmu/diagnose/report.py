@@ -415,6 +415,12 @@ code{{background:#f6f6f6}}</style></head><body>
     rows.append(["noise level"] + [_fmt(res["baseline"]["noise"][c]) for c in chans] + [""])
     parts.append("<h2>Held-out RMSE</h2>" + _table(rows, ["model"] + [f"rmse {c} [{UNIT[c]}]" for c in chans]
                                                        + ["nrmse [1]"]))
+    away_b, away_f = res["baseline"].get("rmse_away_from_jumps", {}), res["final"].get("rmse_away_from_jumps", {})
+    if away_b and any(away_b[c] != res["baseline"]["rmse"][c] for c in away_b):
+        parts.append("<p>Away from the command's jumps (where creep, leakage and drift are judged; the "
+                     "transients after the steps left out): recalibrated nominal "
+                     + ", ".join(f"{c} {_fmt(away_b[c])} {UNIT[c]}" for c in away_b) + "; final "
+                     + ", ".join(f"{c} {_fmt(away_f[c])} {UNIT[c]}" for c in away_f) + ".</p>")
     parts.append("<p>Nominal model as given (before recalibration): "
                  + ", ".join(f"{c} {_fmt(v)} {UNIT[c]}" for c, v in res["baseline"]["nominal_as_given_rmse"].items())
                  + ". " + e(res["validation"]["method"]) + f" ({100 * res['validation']['heldout_fraction']:.0f} % held out).</p>")
