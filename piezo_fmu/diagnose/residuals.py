@@ -15,8 +15,8 @@ from .engine import predict
 from .fit import Fitter
 from .stats import psd
 
-__all__ = ["ACCEPT", "full_residuals", "hold_runs", "residual_peaks", "residual_sets", "spectral_peaks",
-           "taken_in_holds"]
+__all__ = ["ACCEPT", "full_residuals", "heldout_rmse", "hold_runs", "residual_peaks", "residual_sets",
+           "spectral_peaks", "taken_in_holds"]
 
 ACCEPT = {
     "p_lr": 1e-3,            # likelihood-ratio test on training rows (effective sample size)
@@ -66,6 +66,13 @@ def residual_sets(fitter: Fitter, p):
             out[ch]["blocks_slow"] = blocks_q if quiet_enough else blocks
     return out, preds
 
+
+
+def heldout_rmse(sets):
+    """Held-out rmse per channel of :func:`residual_sets`' ``sets``, over every held-out sample (what
+    the report's table compares; a slow candidate's own statistics leave the jumps' transients out)."""
+    return {c: math.sqrt(float(v["heldout"] @ v["heldout"]) / max(v["heldout"].size, 1))
+            for c, v in sets.items()}
 
 def full_residuals(fitter, p):
     rps = fitter.replays(p)

@@ -16,13 +16,11 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from .catalogue import propose
 from .decide import noise_levels, score
 from .fit import free_names, get_value, strip
 from .recalibrate import ITEM_K, ITEM_PARAMS, adopt_mode, drop, mode_at
-from .residuals import ACCEPT, residual_sets
+from .residuals import ACCEPT, heldout_rmse, residual_sets
 from .stats import compare
 
 __all__ = ["CREEP_BEFORE_DRIFT", "MODE_EVIDENCE", "ORDINARY_ADOPTIONS", "SHAPE_LAST", "beside_named_mode",
@@ -165,7 +163,7 @@ def drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise, c
     for f in findings:
         if f["name"] == "creep":
             f["after"] = fr.params
-            f["rmse_after"] = {c: float(np.sqrt(np.mean(v["heldout"] ** 2))) for c, v in sets_new.items()}
+            f["rmse_after"] = heldout_rmse(sets_new)
             if f.get("rival", {}) and f["rival"].get("effect") == "thermal_drift":
                 f["alt_share"] = 0.0
     findings = [f for f in findings if f["name"] != "thermal_drift"]

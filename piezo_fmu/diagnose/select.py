@@ -35,7 +35,7 @@ from .loopshape import (SHAPE_BESIDE_BEYOND, SHAPE_BEYOND, SHAPE_BEYOND_NOMINAL,
                         SHAPE_PARTIAL_EXPLAINED, SHAPE_PARTIAL_REMOVED, SHAPE_REMOVED, beyond_classical,
                         further_from_nominal, loop_beside)
 from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, drop, present, without
-from .residuals import ACCEPT, full_residuals, residual_peaks, residual_sets
+from .residuals import ACCEPT, full_residuals, heldout_rmse, residual_peaks, residual_sets
 from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, creep_before_drift, delay_or_lag, drift_both,
                      drift_or_creep, ordinary_found, physics_before_shape, resonance_or_mode)
 from .starts import swapped_mode
@@ -271,12 +271,6 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
             "note": ok[1], "struct": s_new, "sets": sets_new, "bounds": bounds, "dropped": dropped}
 
 
-def _heldout_rmse(sets):
-    """Held-out rmse per channel over every held-out sample (what the report's table compares; a
-    slow candidate's own statistics leave the jumps' transients out)."""
-    return {c: math.sqrt(float(v["heldout"] @ v["heldout"]) / max(v["heldout"].size, 1)) for c, v in sets.items()}
-
-
 def _creep_at_floor(name, bounds, p, struct):
     """Index of a new creep element whose time constant sits at the lower end of its range when
     another new element stays (else ``None``): an element that fast draws a lag, a mode or the
@@ -479,7 +473,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         if prev is not None:
             # a further creep element refines the same finding
             prev["after"] = best["fit"].params
-            prev["rmse_after"] = _heldout_rmse(best["sets"])
+            prev["rmse_after"] = heldout_rmse(best["sets"])
             prev.setdefault("more", []).append(best["cmp"])
         else:
             findings.append({"name": best["name"], "cmp": best["cmp"], "before": current,
@@ -490,7 +484,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                                  "effect": rival["name"], "passed": rival["passed"],
                                  "explained_share": {c: round(v["explained"], 4)
                                                      for c, v in rival["cmp"]["channels"].items()}},
-                             "rmse_after": _heldout_rmse(best["sets"])})
+                             "rmse_after": heldout_rmse(best["sets"])})
         rejected += [{"effect": t["name"], "why": t["why"] or "another candidate explained more",
                       **({"at_bound": t["bounds"]} if t["bounds"] else {})}
                      for t in tried if t is not best and not t["passed"]]
