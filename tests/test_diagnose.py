@@ -1616,6 +1616,8 @@ def test_creep_is_judged_on_held_out_data_away_from_the_steps(monkeypatch):
         assert res["final"]["rmse_away_from_jumps"][c] < 0.5 * res["baseline"]["rmse_away_from_jumps"][c]
     assert res["baseline"]["rmse_away_from_jumps"]["x"] < res["baseline"]["rmse"]["x"]
     assert "away from the command's jumps" in res["validation"]["selection"]
+    from piezo_fmu.cli.diagnose import summary
+    assert "away from the command's jumps" in summary(res)
     # judged on every held-out sample (the rule before), creep is refused
     monkeypatch.setattr(residuals, "SLOW_HELDOUT_MIN", 2.0)
     assert analyse(raw).result["final"]["effects"] == []

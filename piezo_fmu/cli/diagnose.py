@@ -16,6 +16,10 @@ def summary(res):
     lines.append("held-out rmse: " + ", ".join(
         f"{c} {res['baseline']['rmse'][c]:.4g} -> {res['final']['rmse'][c]:.4g} (noise {res['baseline']['noise'][c]:.3g})"
         for c in chans))
+    away_b, away_f = res["baseline"].get("rmse_away_from_jumps", {}), res["final"].get("rmse_away_from_jumps", {})
+    if away_b and any(away_b[c] != res["baseline"]["rmse"][c] for c in away_b):
+        lines.append("  away from the command's jumps (where creep, leakage and drift are judged): "
+                     + ", ".join(f"{c} {away_b[c]:.4g} -> {away_f[c]:.4g}" for c in away_b))
     for f in res["findings"]:
         where = f["where"][0] if f["where"] else None
         lines.append(f"  {f['effect']:<24} confidence {f['confidence']:.2f}  {f['parameters']}"

@@ -64,6 +64,7 @@ def residual_sets(fitter: Fitter, p):
             quiet_enough = h_q.size >= SLOW_HELDOUT_MIN * out[ch]["heldout"].size
             out[ch]["heldout_slow"] = h_q if quiet_enough else out[ch]["heldout"]
             out[ch]["blocks_slow"] = blocks_q if quiet_enough else blocks
+            out[ch]["slow_away"] = quiet_enough and h_q.size < out[ch]["heldout"].size
     return out, preds
 
 

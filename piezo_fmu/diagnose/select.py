@@ -254,7 +254,8 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
     bounds = at_bound(fitter, fr.params, own_parameters(name, struct, s_new))
     passed, why = passes(cmp, name, ok, bounds)
     step(f"round {rnd + 1}: {name}: " + ((f"passes ({ok[1]})" if ok[1] else "passes") if passed else f"fails ({why})")
-         + "; held-out rmse "
+         + ("; held-out rmse away from the command's jumps "
+            if name in SLOW and any(v["slow_away"] for v in sets_new.values()) else "; held-out rmse ")
          + ", ".join(f"{c} {v['rmse_before']:.4g} -> {v['rmse_after']:.4g} (explains {v['explained']:.2f}, "
                      f"held-out beta {v['beta_heldout']:.2f}, z {v['z_heldout']:.1f})"
                      for c, v in cmp["channels"].items())
