@@ -68,12 +68,12 @@ def residual_sets(fitter: Fitter, p):
     return out, preds
 
 
-
 def heldout_rmse(sets):
     """Held-out rmse per channel of :func:`residual_sets`' ``sets``, over every held-out sample (what
     the report's table compares; a slow candidate's own statistics leave the jumps' transients out)."""
     return {c: math.sqrt(float(v["heldout"] @ v["heldout"]) / max(v["heldout"].size, 1))
             for c, v in sets.items()}
+
 
 def full_residuals(fitter, p):
     rps = fitter.replays(p)
