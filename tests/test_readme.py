@@ -2,6 +2,8 @@
 import re
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -22,3 +24,20 @@ def test_quick_start_has_exactly_two_commands():
 def test_ci_runs_the_readme_test_command():
     ci = (ROOT / ".ci" / "run").read_text()
     assert quick_start_commands()[1] in ci
+
+
+@pytest.fixture(scope="module")
+def readme_text():
+    return (ROOT / "README.md").read_text()
+
+
+def test_tests_sharing_a_module_fixture_are_kept_on_one_worker(request, readme_text):
+    # conftest.pytest_collection_modifyitems: with `--dist loadgroup` an xdist_group keeps the
+    # module's fixture users together, so the fixture is computed once, not once per worker
+    marker = request.node.get_closest_marker("xdist_group")
+    assert marker is not None and marker.args == (__name__,)
+    assert "pytest-xdist" in readme_text
+
+
+def test_a_test_without_a_module_fixture_is_dealt_out_alone(request):
+    assert request.node.get_closest_marker("xdist_group") is None
