@@ -533,7 +533,9 @@ def recal_summary(p, dev, dt, recal, fitter=None):
         "loop": {"value": f"{len(p.thresholds)} play operators"
                           + (f", {p.n_cells} KP cells" if p.n_cells else "")
                           + (" (refined: an ordinary loop difference, not named)"
-                             if loop.get("refined") else ""),
+                             if loop.get("refined") else "")
+                          + (" with the finer loop's own fit: refitted, it was worse on held-out data"
+                             if loop.get("refit_undone") else ""),
                  "refined": False, **loop},
     }
     return _judge(out, fitter, p)
