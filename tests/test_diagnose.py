@@ -1509,6 +1509,24 @@ def test_a_finer_loop_whose_refit_is_worse_on_held_out_data_keeps_its_own_fit(mo
     assert res["baseline"]["recalibrated"]["loop"]["refit_undone"] is False
     assert res["final"]["effects"] != truth
 
+def test_a_current_limit_a_slow_record_sees_on_two_samples_is_named(monkeypatch):
+    # rig-d8-069: a current limit on a record sampled at 884 Hz. The fitted limit binds on 2
+    # samples (the largest steps) and explains all the misfit on both channels, confirmed on the
+    # held-out data (beta 0.99 and 1.00 at z 72 and 43); it was refused as never binding
+    import piezo_fmu.diagnose.catalogue as catalogue
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-d8-069")
+    assert rec.truth["mechanisms"] == ["amplifier_current_limit"]
+    res = analyse(raw).result
+    assert res["final"]["effects"] == ["amplifier_current_limit"], (res["candidates"], res["rejected"])
+    assert "binds on 2 samples only" in res["findings"][0]["evidence"]["note"]
+    assert res["final"]["rmse"]["x"] < 0.5 * res["baseline"]["rmse"]["x"]
+    monkeypatch.setattr(catalogue, "LIMIT_BRIEF_EXPLAINED", math.inf)      # at least 3 samples, as before
+    res = analyse(raw).result
+    assert "amplifier_current_limit" not in res["final"]["effects"]
+    assert any("never binds" in r["why"] for r in res["rejected"] if r["effect"] == "amplifier_current_limit")
+
 def test_a_drift_beside_creep_is_checked_after_the_search_budget_is_spent():
     # rig-d1-161: logarithmic creep alone. The search named creep (one element, 0.15 s) and then a
     # drift in both channels, and spent its budget; the check whether a further creep element
