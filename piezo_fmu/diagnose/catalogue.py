@@ -173,10 +173,11 @@ CREEP_SLOWEST_S = 0.05
 MODE_OWN_BAND = 0.1
 # a current limit binds on at least 3 samples, or on 1-2 when it explains at least this share of
 # the structured residual on every channel and the held-out data take its correction within
-# LIMIT_BRIEF_BETA at z >= 3: a slowly sampled record sees a limit only at its largest steps (rig-d8-069, 884 Hz: 2
-# samples at the limit, 100 % explained on both channels, held-out beta 0.99 and 1.00 at z 72 and
-# 43). Of the 33 limits refused as never binding in draws 0 and 8 and synth, the false ones explain
-# at most 0.62 of a channel's, or take 0.67 of it on held-out data (rig-131)
+# LIMIT_BRIEF_BETA at z >= 3: a slowly sampled record sees a limit only at its largest steps
+# (rig-d8-069, 884 Hz: 2 samples at the limit, 100 % explained on both channels, held-out beta
+# 0.99 and 1.00 at z 72 and 43). Of the 33 limits refused as never binding in draws 0 and 8 and
+# synth, the false ones explain at most 0.62 of a channel's, or take 0.67 of it on held-out data
+# (rig-131)
 LIMIT_BRIEF_EXPLAINED = 0.9
 LIMIT_BRIEF_BETA = (0.8, 1.25)
 MODE_BAND_WIDTH = 1.25   # that band: f_n / width .. f_n * width
