@@ -984,6 +984,7 @@ def test_a_drift_whose_training_blocks_hold_other_misfit_is_named_on_its_held_ou
     assert ev["explained_share"]["x"] < 0.35 and ev["explained_share_heldout"]["x"] > 0.9, ev
     assert drift["confidence"] >= 0.5
 
+
 def test_a_rival_the_training_rows_tell_apart_leaves_the_best_unique():
     # two candidates against the same residual: one removes the structure, the other half of it
     from piezo_fmu.diagnose.decide import told_apart
@@ -1509,6 +1510,7 @@ def test_a_finer_loop_whose_refit_is_worse_on_held_out_data_keeps_its_own_fit(mo
     assert res["baseline"]["recalibrated"]["loop"]["refit_undone"] is False
     assert res["final"]["effects"] != truth
 
+
 def test_a_current_limit_a_slow_record_sees_on_two_samples_is_named(monkeypatch):
     # rig-d8-069: a current limit on a record sampled at 884 Hz. The fitted limit binds on 2
     # samples (the largest steps) and explains all the misfit on both channels, confirmed on the
@@ -1526,6 +1528,7 @@ def test_a_current_limit_a_slow_record_sees_on_two_samples_is_named(monkeypatch)
     res = analyse(raw).result
     assert "amplifier_current_limit" not in res["final"]["effects"]
     assert any("never binds" in r["why"] for r in res["rejected"] if r["effect"] == "amplifier_current_limit")
+
 
 def test_a_drift_beside_creep_is_checked_after_the_search_budget_is_spent():
     # rig-d1-161: logarithmic creep alone. The search named creep (one element, 0.15 s) and then a

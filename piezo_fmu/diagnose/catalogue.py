@@ -439,10 +439,9 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
             ua = amplifier_output(r, fitter.dev, p_after)
             # internal steps at the limit, counted in samples
             limited += int(np.count_nonzero(np.abs(np.diff(ua)) >= 0.999 * slew * r.h)) // r.oversample
-        brief = limited >= 1 and all(
-            v["explained"] >= LIMIT_BRIEF_EXPLAINED and v["z_heldout"] >= 3.0
-            and LIMIT_BRIEF_BETA[0] <= v["beta_heldout"] <= LIMIT_BRIEF_BETA[1] for v in ch.values())
-        if limited < 3 and not brief:
+        if limited < 3 and not (limited >= 1 and all(
+                v["explained"] >= LIMIT_BRIEF_EXPLAINED and v["z_heldout"] >= 3.0
+                and LIMIT_BRIEF_BETA[0] <= v["beta_heldout"] <= LIMIT_BRIEF_BETA[1] for v in ch.values())):
             return False, "the fitted current limit never binds"
         return True, (f"binds on {limited} samples" + (" only, and explains nearly all the misfit there is"
                                                        if limited < 3 else ""))
