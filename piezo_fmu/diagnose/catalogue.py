@@ -336,7 +336,8 @@ def _offset_trend_alternative(fitter: Fitter, p):
 
 def _own_channel_share(fitter: Fitter, p0, p1, ch):
     """Share of channel ``ch``'s structured residual that ``p1`` removes over ``p0`` when both are
-    re-solved on that channel alone (the other channel weighted out). A mechanism acting on one
+    re-solved on that channel alone (the other channel weighted out; each kept as fitted where that
+    fits the channel better than the re-solve). A mechanism acting on one
     channel must pass this: otherwise its gain came from the other channel via shared parameters.
     ``None`` when only ``ch`` is recorded (then the joint fit already is the own-channel fit)."""
     from .varpro import solve_linear
@@ -344,14 +345,20 @@ def _own_channel_share(fitter: Fitter, p0, p1, ch):
     if not all(getattr(r, c) is not None for r in fitter.recs for c in ("x", "us")):
         return None
     lam = {c: (v if c == ch else v * 1e-9) for c, v in fitter.lam.items()}
+
+    def channel_mse(q):
+        e = np.concatenate([(getattr(r, ch) - predict(r, fitter.dev, q, direct=True)[ch])[r.train]
+                            for r in fitter.recs])
+        return float(np.mean(e * e))
+
     mse = []
     for p in (p0, p1):
         q = p.copy()
         solve_linear(fitter.recs, fitter.dev, q, lam, drift_terms=2 if (p.rate or p.curv) else 0,
                      replays=fitter.replays(q), gn_iter=2)
-        e = np.concatenate([(getattr(r, ch) - predict(r, fitter.dev, q, direct=True)[ch])[r.train]
-                            for r in fitter.recs])
-        mse.append(float(np.mean(e * e)))
+        # the re-solve's few saturation steps can land worse than the joint fit on this channel:
+        # the values as fitted are then the better own-channel fit
+        mse.append(min(channel_mse(q), channel_mse(p)))
     structured = mse[0] - fitter.noise.get(ch, 0.0) ** 2
     if structured <= 0:
         return 0.0
