@@ -122,6 +122,10 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
         if "us" not in chans or math.isfinite(p.tau_leak):
             return None
         grid = [{"tau_leak": tau} for tau in log_grid(max(0.02, 20 * dt), 50 * T, 12)]
+        if p.prep > 0 or any(r.u[0] != 0 for r in fitter.recs):
+            # the record starts under a force: how much of its charge the sensor still holds is not
+            # known (charged now, or leaked over a rest before the record); both ends screened
+            grid += [{**g, "leak_settled": True} for g in grid]
         best, _ = fitter.grid(p, grid)
         return best
     if name == "amplifier_current_limit":

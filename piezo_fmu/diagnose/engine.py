@@ -397,9 +397,10 @@ def chain(cols, channel, dev: Device, p: Params, h):
     # start is at zero): its steady response to that level, plus the filtered change from it
     c0 = cols[..., :1] * gain
     settled = bool(np.any(c0))
-    if settled and channel == "us" and math.isfinite(p.tau_leak):
-        # a sensor's leakage is not settled: the core's sensor starts charged with the first force
-        # and leaks from there (Sensor.reset(F)), the step response of the leakage block
+    if settled and channel == "us" and math.isfinite(p.tau_leak) and not p.leak_settled:
+        # a sensor charged with the first force leaks from there, as the core's sensor does from
+        # Sensor.reset(F): the step response of the leakage block. A sensor that held that force
+        # long before the record has leaked it (the leakage's steady gain, 0: it sees the changes)
         dc = _leak_start(cols.shape[-1], dc, float(h), float(p.tau_leak))
     if front is None and sos is not None:
         # the gain, the settled start and the filter in one compiled pass

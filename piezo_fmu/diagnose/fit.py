@@ -561,6 +561,8 @@ class Fitter:
             for n, v in assign.items():
                 if n == "delay":
                     p.delay = v
+                elif n == "leak_settled":
+                    p.leak_settled = v
                 elif n == "res":
                     p.res = v
                 else:

@@ -78,6 +78,8 @@ class Params:
     S: float = 1.0                   # sensor sensitivity [V/N]
     off_s: float = 0.0               # sensor offset [V]
     tau_leak: float = math.inf       # [s]
+    leak_settled: bool = False       # the sensor's charge at the first sample leaked already (it sees
+                                     # only the force's changes); False: charged with the first force
     prep: float = 0.0                # the operators' state at the first sample: 0 relaxed; > 0 after a
                                      # preparation sweep up to this stack voltage [V] and back to the start
     cells: np.ndarray | None = None  # KP cells beside the PI, (3, m): switch-up, switch-down, ramp width
