@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 
 from . import workers
-from .catalogue import CATALOGUE, plausible, propose, shape_size
+from .catalogue import CATALOGUE, other_charge, plausible, propose, shape_size
 from .decide import (CONFIDENT, at_bound, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score, told_apart)
 from .delays import refine_delay
@@ -219,6 +219,8 @@ def _starts(fitter, name, current, held, struct, cctx, recal):
         a = propose(name, fitter, base, struct, cctx)
         if a is not None:
             alts.append((a, []))
+    if name == "sensor_leakage" and start is not None and (a := other_charge(fitter, start)) is not None:
+        alts.append((a, []))        # the sensor's charge at the start the other way (see other_charge)
     if name == "extra_resonance":
         # or the first mode's place is the further mode's (both are fitted; the better by
         # BIC is kept: a further mode elsewhere that fails may still show a better fit of
