@@ -400,7 +400,8 @@ def chain(cols, channel, dev: Device, p: Params, h):
     if settled and channel == "us" and math.isfinite(p.tau_leak) and not p.leak_settled:
         # a sensor charged with the first force leaks from there, as the core's sensor does from
         # Sensor.reset(F): the step response of the leakage block. A sensor that held that force
-        # long before the record has leaked it (the leakage's steady gain, 0: it sees the changes)
+        # long before the record has leaked it: it reads the changes from there (``leak_settled``;
+        # the start's level a constant, which the sensor offset takes)
         dc = _leak_start(cols.shape[-1], dc, float(h), float(p.tau_leak))
     if front is None and sos is not None:
         # the gain, the settled start and the filter in one compiled pass

@@ -548,7 +548,7 @@ def describe_parameters(name, p, dev, dt):
                 "time_constants_s": [float(f"{t:.5g}") for _, t in p.creep]}
     if name == "sensor_leakage":
         return {"tau_leak_s": float(f"{p.tau_leak:.5g}"),
-                "charge_at_start": "leaked before the record" if p.leak_settled else "the first force's"}
+                "charge_at_start": "leaked before the record" if p.leak_settled else "charged at the first sample"}
     if name == "amplifier_current_limit":
         return {"I_max_A": float(f"{p.slew * dev.C_a:.5g}"), "slew_V_per_s": float(f"{p.slew:.5g}")}
     if name == "time_delay":
