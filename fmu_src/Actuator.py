@@ -27,7 +27,7 @@ class Actuator(Fmi2Slave):
     TUNABLE = ("amplifier.k_amp", "amplifier.R", "amplifier.C_a", "amplifier.u_min", "amplifier.u_max",
                "amplifier.I_max", "hysteresis.scale", "hysteresis.weights", "hysteresis.saturation",
                "hysteresis.cells_weights",
-               "drift.offset", "drift.rate", "drift.curvature", "simulation.actuator_max_step")
+               "drift.offset", "drift.rate", "drift.curvature", "drift.time_constant", "simulation.actuator_max_step")
     CHECK = staticmethod(units.check_sections)   # the same consistency rules as model files
     CODES = {"mechanics.pickoff": PICKOFFS, "resonance.position": RESONANCE_AT}
 

@@ -123,7 +123,10 @@ SCHEMA = {
     "drift": {
         "offset": _f("um", "finite", "displacement offset at t = 0", 0.0),
         "rate": _f("um/s", "finite", "linear displacement drift", 0.0),
-        "curvature": _f("um/s^2", "finite", "quadratic displacement drift coefficient", 0.0),
+        "curvature": _f("um/s^2", "finite", "curvature of the displacement drift: half its acceleration "
+                        "at t = 0 (the coefficient of t^2, or of its warm-up form)", 0.0),
+        "time_constant": _f("s", "positive_or_inf", "warm-up time constant of the drift's curvature "
+                            "term 2 T^2 (exp(-t/T) - 1 + t/T) (inf: t^2, a quadratic drift)", math.inf),
     },
     "sensor": {
         "d11": _f("C/N", "positive", "piezoelectric coefficient of x-cut quartz (eq. 3)"),

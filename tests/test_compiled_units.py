@@ -36,6 +36,8 @@ ACTUATORS = {
                    "drift.curvature": -0.05, "simulation.actuator_max_step": 2.5e-5,
                    "amplifier.tau_2": 2e-4, "mechanics.pickoff": "load"},
     "one creep element": {"creep.gains": [0.03], "creep.time_constants": [0.05]},
+    "warm-up drift": {"drift.offset": 0.02, "drift.rate": 0.1, "drift.curvature": 0.4, "drift.time_constant": 0.02,
+                      "mechanics.pickoff": "load"},
     "contact pick-off": {"mechanics.pickoff": "contact", "amplifier.tau_2": 1e-4, "resonance.f_n": 900.0},
     "mode on the drive": {"resonance.f_n": 700.0, "resonance.position": "drive", "creep.gains": [0.05],
                           "creep.time_constants": [0.2]},
@@ -101,6 +103,31 @@ def test_a_compiled_actuator_resets_to_the_same_state(drift):
     act.reset()
     ref.reset()
     assert list(act.out) == list(ref.out) and ref.out[3] > 0.0
+
+
+@pytest.mark.parametrize("engine", ["python", "numba"])
+def test_a_warm_up_drift_settles_into_a_ramp(engine):
+    """The drift's warm-up form, written as a ramp and an exponential settling of amplitude
+    -2 T^2 c (c the curvature, T the time constant): the same start as a quadratic drift, then a
+    straight line; the load pick-off's force follows the drift's change."""
+    off, rate, curv, T = 0.02, 0.1, 0.4, 0.02
+    kw = {"drift.offset": off, "drift.rate": rate, "drift.curvature": curv, "drift.time_constant": T,
+          "mechanics.pickoff": "load"}
+    act = _actuator(**kw) if engine == "python" else compiled.compile_unit(_actuator(**kw))
+    still = _actuator(**{"mechanics.pickoff": "load"})
+    t, x, f, x0, f0 = 0.0, [], [], [], []
+    for _ in range(1000):
+        act.advance(0.0, 1e-4)
+        still.advance(0.0, 1e-4)
+        t += 1e-4
+        x.append(float(act.x) - float(still.x))
+        f.append(float(act.F) - float(still.F))
+    t = np.arange(1, 1001) * 1e-4
+    want = off + (rate + 2 * T * curv) * t - 2 * T * T * curv * (1.0 - np.exp(-t / T))
+    assert np.allclose(x, want, rtol=0, atol=1e-12)
+    assert np.allclose(want[:5] - off - rate * t[:5], curv * t[:5] ** 2, rtol=0.01)     # starts as t^2
+    k_f = MODEL.sections["mechanics"]["k_f"] * 1e-6
+    assert np.allclose(f, k_f * (want - off), rtol=1e-9, atol=1e-15)
 
 
 def test_compiled_actuator_works_on_its_own_buffer():

@@ -39,7 +39,7 @@ ENGINES = {"python": 0, "numba": 1}     # Integer codes of the FMUs' simulation.
 # callees before callers: each is compiled with the compiled versions of those before it
 KERNEL_ORDER = (
     (hysteresis, "pi_tail"), (hysteresis, "pi_step"), (preisach, "kp_step"), (plant, "amp_step"),
-    (linear, "lti_advance"),
+    (linear, "lti_advance"), (plant, "drift_curvature"), (plant, "drift_at"),
     (control, "reference_value"), (control, "pid_step"),
     (plant, "actuator_step"), (plant, "sensor_step"), (control, "compensator_step"),
 )

@@ -49,7 +49,7 @@ from .linear import LinearSystem, as_floats, lti_advance, same_step
 
 EPS0 = 8.8541878128e-12  # vacuum permittivity [F/m]
 
-__all__ = ["amp_step", "actuator_step", "Actuator", "Sensor",
+__all__ = ["amp_step", "actuator_step", "drift_at", "drift_curvature", "Actuator", "Sensor",
            "sensor_step", "EPS0", "PICKOFFS", "RESONANCE_AT"]
 
 # what the quartz wafer's force is (mechanics.pickoff), as the FMUs' Integer codes
@@ -74,6 +74,23 @@ def amp_step(ua, target, tau, slew, h, decay):
     return target - e * decay
 
 
+def drift_curvature(t, tau):
+    """The drift's curvature term [s^2] at ``t`` [s] (float or array): ``t^2`` for ``tau`` = inf, else
+    a warm-up ``2 tau^2 (exp(-t/tau) - 1 + t/tau)`` [tau in s]: the same start (``t^2 - t^3/(3 tau)``),
+    then a line of slope ``2 tau``; with the rate's ``t``, a ramp and a settling ``1 - exp(-t/tau)``."""
+    if tau == math.inf:
+        return t * t
+    return 2.0 * tau * tau * (np.expm1(-t / tau) + t / tau)
+
+
+def drift_at(t, drift):
+    """The additive displacement drift [um] at time ``t`` [s]: ``drift`` = [offset [um], rate
+    [um/s], curvature [um/s^2], warm-up time constant [s] (inf: quadratic)] or empty (none)."""
+    if len(drift) == 0:
+        return 0.0
+    return drift[0] + drift[1] * t + drift[2] * drift_curvature(t, drift[3])
+
+
 def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k, kp_c, kp_s,
                   cr_phi, cr_g, cr_cd, cr_xs, cr_tmp, frc,
                   me_phi, me_g, me_cd, me_xs, me_tmp, drift, out):
@@ -86,8 +103,9 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     ``pi_k`` = [1/u_norm, scale, 1/saturation] (strain saturation ``x_h / (1 + |x_h| / y_sat)``,
     0 = none); ``kp_c``, ``kp_s`` = the KP cells' table and states (:mod:`.preisach`; empty: none),
     added to the PI's output before the scale; ``frc`` = [k_a * 1e-6 [N/um], pick-off code (0 stack, 1 load, 2 contact), k_f * 1e-6 [N/um]];
-    ``drift`` = polynomial coefficients of an additive displacement drift in time [um, um/s, ...]
-    (with the load pick-off the force follows the drift's change too: it moves the push rod).
+    ``drift`` = an additive displacement drift, [offset, rate, curvature, warm-up time constant]
+    (:func:`drift_at`; empty: none; with the load pick-off the force follows the drift's change
+    too: it moves the push rod).
     Writes ``out`` = [x [um], F [N] (the sensed force), ua [V], x_h [um]].
     """
     nd = int(dly[0])
@@ -117,10 +135,7 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     force = frc[0] * x_free
     x = lti_advance(me_phi, me_g, me_cd, me_xs, force, me_tmp)
     nd2 = len(drift)
-    acc = 0.0
-    if nd2:
-        for i in range(nd2 - 1, -1, -1):
-            acc = acc * t_end + drift[i]
+    acc = drift_at(t_end, drift)
     if frc[1] == 1.0:
         # the load spring follows the push rod, and a thermal drift moves the push rod: the force
         # sees the drift's change (not the constant offset of the displacement reading)
@@ -154,7 +169,9 @@ class Actuator:
     resonance : optional ``(f_n [Hz], zeta [1])`` of a further mode in series (unity DC gain);
     resonance_at : where that mode acts: ``"output"`` (after the mechanics, on x) or ``"drive"``
     (on the free stroke, before the mechanics: in x and in every sensed force);
-    drift : polynomial coefficients of an additive drift [um, um/s, ...].
+    drift : an additive displacement drift's offset [um], rate [um/s] and curvature [um/s^2]
+    (up to three; :func:`drift_at`);
+    drift_tau : the curvature term's warm-up time constant [s] (inf: a quadratic drift).
     max_step : largest internal step [s]; a communication step is split into equal sub-steps.
 
     Outputs after :meth:`advance`: ``x`` [um], ``F`` [N], ``ua`` [V], ``x_h`` [um].
@@ -162,7 +179,7 @@ class Actuator:
 
     def __init__(self, *, k_amp, R, C_a, u_min, u_max, hysteresis: PrandtlIshlinskii,
                  m, c, k_a, k_f, saturation=math.inf, I_max=math.inf, delay=0.0, creep_gains=(), creep_taus=(),
-                 resonance=None, drift=(), max_step=1e-4, tau_2=0.0, pickoff="stack", resonance_at="output",
+                 resonance=None, drift=(), drift_tau=math.inf, max_step=1e-4, tau_2=0.0, pickoff="stack", resonance_at="output",
                  prepared=0.0, cells: KPCells | None = None):
         self.k_amp, self.R, self.C_a = float(k_amp), float(R), float(C_a)
         self.u_min, self.u_max, self.I_max = float(u_min), float(u_max), float(I_max)
@@ -178,7 +195,12 @@ class Actuator:
         self.creep_gains = [float(v) for v in creep_gains]
         self.creep_taus = [float(v) for v in creep_taus]
         self.resonance = None if resonance is None else (float(resonance[0]), float(resonance[1]))
-        self.drift = [float(v) for v in drift]
+        if len(drift) > 3:
+            raise ValueError(f"drift: offset, rate and curvature at most, got {len(drift)} coefficients")
+        coef = [float(v) for v in drift] + [0.0] * (3 - len(drift))
+        if not float(drift_tau) > 0.0:
+            raise ValueError(f"drift_tau = {drift_tau!r}: a warm-up time constant is positive [s] (inf: none)")
+        self.drift = coef + [float(drift_tau)] if any(coef) else []
         self.max_step = float(max_step)
         tau = self.R * self.C_a
         self.amp = [self.k_amp, tau, self.I_max / self.C_a, self.u_min, self.u_max, 0.0, self.tau_2, 0.0, 0.0]
@@ -337,7 +359,7 @@ class Actuator:
         self.out[:] = [x + self._drift_at(self.time), force, 0.0, x_h]
 
     def _drift_at(self, t):
-        return sum(c * t ** i for i, c in enumerate(self.drift))
+        return drift_at(t, self.drift)
 
     def get_state(self):
         """Complete state as plain Python data (JSON-serialisable)."""

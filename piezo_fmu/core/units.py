@@ -5,6 +5,8 @@ monolithic model and, inside an FMU, the slaves, which carry the model's values 
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from .control import Compensator
@@ -92,8 +94,6 @@ def actuator_from(sections) -> Actuator:
     dr = sections.get("drift", {})
     res = sections.get("resonance", {})
     drift = [dr.get("offset", 0.0), dr.get("rate", 0.0), dr.get("curvature", 0.0)]
-    while drift and drift[-1] == 0.0:
-        drift.pop()
     f_n = res.get("f_n", 0.0)
     act = Actuator(
         k_amp=a["k_amp"], R=a["R"], C_a=a["C_a"], u_min=a["u_min"], u_max=a["u_max"],
@@ -105,7 +105,7 @@ def actuator_from(sections) -> Actuator:
         m=me["m"], c=me["c"], k_a=me["k_a"], k_f=me["k_f"],
         creep_gains=cr.get("gains", []), creep_taus=cr.get("time_constants", []),
         resonance=(f_n, res.get("zeta", 0.05)) if f_n > 0 else None,
-        drift=drift, max_step=sections.get("simulation", {}).get("actuator_max_step", 1e-4),
+        drift=drift, drift_tau=dr.get("time_constant", math.inf), max_step=sections.get("simulation", {}).get("actuator_max_step", 1e-4),
     )
     act.reset()
     return act

@@ -21,6 +21,7 @@ import numpy as np
 from ..core.preisach import grid_cells
 from .engine import amplifier_output, at_samples, chain, lowpass, predict, trend
 from .delays import delay_search
+from .drifts import drift_start
 from .fit import Fitter, Structure
 from .residuals import taken_in_holds
 from .starts import further_mode_start, log_grid, swap_lag_account, with_params
@@ -76,10 +77,12 @@ CATALOGUE = {m.name: m for m in (
         "f_n [Hz], zeta [1]", ("resonance.f_n", "resonance.zeta"), ("x", "us")),
     Mechanism(
         "thermal_drift", "Slow offset drift (thermal)",
-        "x += rate t + curvature t^2 (time since the start of the recording)",
+        "x += rate t + curvature 2 T^2 (exp(-t/T) - 1 + t/T) (t since the start of the recording): "
+        "a ramp and a warm-up settling with time constant T (T -> inf: curvature t^2)",
         "a slow trend of the displacement that the input history does not explain: not tied to "
         "steps, same in holds and in motion, the lowest frequencies of the residual spectrum",
-        "rate [um/s], curvature [um/s^2]", ("drift.rate", "drift.curvature"), ("x",)),
+        "rate [um/s], curvature [um/s^2], warm-up time constant T [s]",
+        ("drift.rate", "drift.curvature", "drift.time_constant"), ("x",)),
     Mechanism(
         "hysteresis_shape", "A loop shape the nominal play-operator grid cannot draw",
         "the same Prandtl-Ishlinskii model with twice the operators (midpoints added to the "
@@ -149,7 +152,7 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
     if name == "thermal_drift":
         if "x" not in chans or "thermal_drift" in struct.effects:
             return None
-        return p.copy()          # linear: screened by Fitter.quick(drift=True), fitted exactly
+        return drift_start(fitter, p)
     if name == "hysteresis_shape":
         if struct.refined:
             return None
@@ -419,7 +422,7 @@ def _drift_in_sensor(fitter: Fitter, p):
         pr = predict(r, fitter.dev, p, direct=True)
         es.append((r.us - pr["us"])[m])
         t = r.t[m]
-        ds.append(us_per_x * (p.rate * t + p.curv * t * t))
+        ds.append(us_per_x * trend(t, p))
     if not es:
         return None
     e, d = np.concatenate(es), np.concatenate(ds)
@@ -528,7 +531,7 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
         return True, ""
     if name == "thermal_drift":
         tt = np.linspace(0.0, T, 200)
-        drift = float(np.ptp(p_after.rate * tt + p_after.curv * tt * tt))
+        drift = float(np.ptp(trend(tt, p_after)))
         if "x" in ch and drift < 0.5 * ch["x"]["noise"]:
             return False, "drift over the recording below the noise"
         # with the sensor on the stack's own force a displacement drift cannot reach it; a sensor

@@ -45,7 +45,8 @@ def at_bound(fitter: Fitter, p, names):
         v = get_value(p, n, fitter.dev)
         span = math.log(hi / lo)
         x = math.log(max(v, 1e-300) / lo) / span if span > 0 else 0.5
-        if x <= ACCEPT["bound"] or x >= 1.0 - ACCEPT["bound"]:
+        # (a drift's warm-up at its slow end is the quadratic drift: a model, not a search that ran out)
+        if x <= ACCEPT["bound"] or (x >= 1.0 - ACCEPT["bound"] and n != "drift_tau"):
             out.append({"parameter": n, "value": float(f"{v:.5g}"),
                         "range": [float(f"{lo:.5g}"), float(f"{hi:.5g}")]})
     return out

@@ -37,7 +37,7 @@ from scipy.signal import lfilter, ss2tf, tf2sos
 
 from ..core import plant
 from ..core.linear import discretize, tf2ss
-from ..core.plant import mechanics_tf, mode_tf, series_tf
+from ..core.plant import drift_curvature, mechanics_tf, mode_tf, series_tf
 from ..core.preisach import kp_relax, kp_step, kp_table
 from .model_io import Device, Params, Recording, device_from_model, model_from_params, params_from_model
 
@@ -474,7 +474,7 @@ def leak(f, tau_leak, h):
 
 def trend(t, p: Params):
     """The drift's change since the start [um] (a load pick-off's force follows it: k_load trend)."""
-    return p.rate * t + p.curv * t * t
+    return p.rate * t + p.curv * drift_curvature(t, p.drift_tau)
 
 
 def saturate(hx, y_sat):

@@ -18,12 +18,14 @@ import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
 from . import workers
-from .engine import Params, predict, replay, stroke
+from .engine import Params, drift_curvature, predict, replay, stroke
 from .varpro import residuals, solve_linear
 
-__all__ = ["FitResult", "Fitter", "Structure"]
+__all__ = ["DRIFT_TAU", "FitResult", "Fitter", "Structure"]
 
 
+# the drift's warm-up time constant, in units of the record's duration (see Fitter.bounds)
+DRIFT_TAU = (0.05, 20.0)
 LAG_UNSEEN = 0.1     # a lag below this fraction of a sample interval is invisible (its cost is flat)
 
 
@@ -37,6 +39,7 @@ class Structure:
     shape_extra: int = 0         # operators and KP cells added by hysteresis_shape (or by the refined
                                  # ordinary loop): linear parameters, counted by n_params
     refined: bool = False        # the finer loop as ordinary recalibration (a small loop-shape misfit)
+    drift_warmup: bool = True    # a drift's warm-up time constant is fitted (False: the quadratic drift)
 
     def refine(self, shape_extra):
         """The finer operator grid as ordinary recalibration (no finding)."""
@@ -48,6 +51,8 @@ class Structure:
             return replace(self, effects=eff, creep_order=creep_order or self.creep_order + 1)
         if name == "hysteresis_shape":
             return replace(self, effects=eff, shape_extra=shape_extra)
+        if name == "thermal_drift":
+            return replace(self, effects=eff, drift_warmup=True)
         return replace(self, effects=eff)
 
     def without(self, name):
@@ -67,7 +72,7 @@ class Structure:
         n = self.shape_extra if self.refined else 0
         for e in self.effects:
             n += {"creep": 2 * self.creep_order, "sensor_leakage": 1, "amplifier_current_limit": 1,
-                  "time_delay": 1, "extra_resonance": 2, "thermal_drift": 2,
+                  "time_delay": 1, "extra_resonance": 2, "thermal_drift": 2 + self.drift_warmup,
                   "hysteresis_shape": self.shape_extra}.get(e, 1)
         return n
 
@@ -95,6 +100,7 @@ def strip(p: Params, struct: Structure, nominal_thresholds=None) -> Params:
         q.res = None
     if "thermal_drift" not in struct.effects:
         q.rate = q.curv = 0.0
+        q.drift_tau = math.inf
     return q
 
 
@@ -111,6 +117,8 @@ def free_names(struct: Structure, ordinary=("tau",)):
         names.append("slew")
     if "extra_resonance" in struct.effects:
         names += ["res_f", "res_zeta"]
+    if "thermal_drift" in struct.effects and struct.drift_warmup:
+        names.append("drift_tau")
     return names
 
 
@@ -256,6 +264,9 @@ class Fitter:
             return max(3 * dt, 0.002), 5 * T
         if name == "tau_leak":
             return max(5 * dt, 0.01), 200 * T
+        if name == "drift_tau":
+            # a settling in the record's first twentieth .. the quadratic within 2 % (t^2 - t^3 / (3 T))
+            return DRIFT_TAU[0] * T, DRIFT_TAU[1] * T
         if name == "slew":
             r = self.max_rate()
             return 1e-3 * r, 20 * r
@@ -342,8 +353,21 @@ class Fitter:
         r = residuals(self.recs, self.dev, p, self.lam, self.replays(p), rows=rows)
         return float(r @ r)
 
-    def _train_data(self, ch):
-        """Cached training rows of channel ``ch``: (y, basis [1, t, t^2] as rows, their Gram, y terms)."""
+    def _train_data(self, ch, drift_tau=math.inf):
+        """Cached training rows of channel ``ch``: (y, basis [1, t, the drift's curvature term] as rows,
+        their Gram, y terms); of the warm-ups (``drift_tau``) only the last one asked for is kept."""
+        if math.isfinite(drift_tau):
+            last = self._cache.get(("train warm-up", ch))
+            if last is not None and last[0] == drift_tau:
+                return last[1]
+            base = self._train_data(ch)
+            if base is None:
+                return None
+            y, basis, bb, by, yy = base
+            basis = np.vstack([basis[:2], drift_curvature(basis[1], drift_tau)])
+            got = (y, basis, basis @ basis.T, basis @ y, yy)
+            self._cache[("train warm-up", ch)] = (drift_tau, got)      # (one assignment: thread-safe)
+            return got
         key = ("train", ch)
         got = self._cache.get(key)
         if got is None:
@@ -389,7 +413,7 @@ class Fitter:
         """:meth:`quick`'s cost from the predictions ``preds`` of ``p`` (weights held)."""
         sse = 0.0
         for ch in ("x", "us"):
-            data = self._train_data(ch)
+            data = self._train_data(ch, p.drift_tau)
             if data is None:
                 continue
             y, basis, bb, by, yy = data
@@ -413,7 +437,7 @@ class Fitter:
         preds = self._predict_held(p) if hs is None else self._predictions(p, hs)
         out = []
         for ch in ("x", "us"):
-            data = self._train_data(ch)
+            data = self._train_data(ch, p.drift_tau)
             if data is None:
                 continue
             y, basis, bb, by, _ = data

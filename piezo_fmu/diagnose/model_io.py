@@ -75,6 +75,7 @@ class Params:
     off_x: float = 0.0               # drift.offset [um]
     rate: float = 0.0                # drift.rate [um/s]
     curv: float = 0.0                # drift.curvature [um/s^2]
+    drift_tau: float = math.inf      # drift.time_constant [s]: the curvature term's warm-up (inf: t^2)
     S: float = 1.0                   # sensor sensitivity [V/N]
     off_s: float = 0.0               # sensor offset [V]
     tau_leak: float = math.inf       # [s]
@@ -200,6 +201,7 @@ def params_from_model(model, dt=None) -> Params:
         res=(res["f_n"], res["zeta"]) if res.get("f_n", 0.0) > 0 else None,
         res_at=res.get("position", "output"),
         off_x=dr.get("offset", 0.0), rate=dr.get("rate", 0.0), curv=dr.get("curvature", 0.0),
+        drift_tau=dr.get("time_constant", math.inf),
         S=s["d11"] / dev.C_sensor, off_s=s.get("offset", 0.0), tau_leak=s.get("tau_leak", math.inf))
 
 
@@ -271,6 +273,9 @@ def model_from_params(base, p: Params, sources: dict, dt=None):
     put("drift", "offset", _num(p.off_x), fitted + " (offset of the displacement channel)")
     put("drift", "rate", _num(p.rate), fitted if p.rate else "diagnose: no drift found")
     put("drift", "curvature", _num(p.curv), fitted if p.curv else "diagnose: no drift found")
+    warm = bool(p.curv) and math.isfinite(p.drift_tau)
+    put("drift", "time_constant", _num(p.drift_tau) if warm else math.inf,
+        fitted + " (the drift's warm-up)" if warm else "diagnose: no warm-up of the drift found")
     dev = device_from_model(m)
     put("sensor", "d11", _num(p.S * dev.C_sensor), fitted + " (effective: absorbs the sensor chain's gain)")
     put("sensor", "offset", _num(p.off_s), fitted)

@@ -167,7 +167,8 @@ def _finding(f, recs, ctxs, dev, noise, p_final, struct_final, dt):
                                        key=lambda c: cmp["channels"][c]["explained"]),
         "channels": [c for c in mech.channels if c in cmp["channels"]],
         "confidence": round(f["confidence"], 3), "where": where, "band_hz": band,
-        "parameters": describe_parameters(name, p_final if name in struct_final.effects else f["after"], dev, dt),
+        "parameters": describe_parameters(name, p_final if name in struct_final.effects else f["after"], dev, dt,
+                                          max(float(r.t[-1]) for r in recs)),
         "rmse_after": f["rmse_after"],
         "evidence": {
             "explained_share": {c: round(v["explained"], 4) for c, v in cmp["channels"].items()},
@@ -541,8 +542,8 @@ def recal_summary(p, dev, dt, recal, fitter=None):
     return _judge(out, fitter, p)
 
 
-def describe_parameters(name, p, dev, dt):
-    """The fitted parameters of a mechanism in model-file units."""
+def describe_parameters(name, p, dev, dt, duration=math.inf):
+    """The fitted parameters of a mechanism in model-file units (``duration`` [s]: the longest record)."""
     if name == "creep":
         return {"gains": [float(f"{g:.5g}") for g, _ in p.creep],
                 "time_constants_s": [float(f"{t:.5g}") for _, t in p.creep]}
@@ -556,7 +557,14 @@ def describe_parameters(name, p, dev, dt):
     if name == "extra_resonance":
         return {"f_n_Hz": float(f"{p.res[0]:.5g}"), "zeta": float(f"{p.res[1]:.4g}"), "position": p.res_at}
     if name == "thermal_drift":
-        return {"rate_per_s": float(f"{p.rate:.5g}"), "curvature_per_s2": float(f"{p.curv:.5g}")}
+        out = {"rate_per_s": float(f"{p.rate:.5g}"), "curvature_per_s2": float(f"{p.curv:.5g}")}
+        if math.isfinite(p.drift_tau):
+            out["time_constant_s"] = float(f"{p.drift_tau:.5g}")
+        if math.isfinite(p.drift_tau) and p.drift_tau <= duration:
+            # rate t + curvature 2 T^2 (exp(-t/T) - 1 + t/T): a ramp and a warm-up settling within the record
+            out.update(ramp_um_per_s=float(f"{p.rate + 2 * p.drift_tau * p.curv:.5g}"),
+                       warm_up_um=float(f"{-2 * p.drift_tau ** 2 * p.curv:.5g}"))
+        return out
     if name == "hysteresis_shape":
         out = {"operators": len(p.thresholds), "thresholds": [float(f"{v:.5g}") for v in p.thresholds]}
         if p.n_cells:

@@ -233,7 +233,8 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     # the recalibrated nominal model: every ordinary item found (also those found after a finding,
     # and a refined loop), no mechanism; without findings it is the final model itself
     struct_base = Structure(struct_nom.effects, struct_nom.creep_order, struct_nom.saturation,
-                            struct_final.shape_extra if struct_final.refined else 0, struct_final.refined)
+                            struct_final.shape_extra if struct_final.refined else 0, struct_final.refined,
+                            struct_nom.drift_warmup)
     if struct_final.effects == struct_nom.effects and struct_final.creep_order == struct_nom.creep_order:
         p_base, struct_nom = p_final, struct_final
     elif revisited[0] or struct_base.refined:
@@ -288,7 +289,8 @@ def _nominal_structure(p: Params) -> Structure:
         eff.append("extra_resonance")
     if p.rate or p.curv:
         eff.append("thermal_drift")
-    return Structure(tuple(sorted(eff)), len(p.creep), math.isfinite(p.y_sat))
+    return Structure(tuple(sorted(eff)), len(p.creep), math.isfinite(p.y_sat),
+                     drift_warmup=math.isfinite(p.drift_tau))
 
 
 def _stroke(recs, dev, p):

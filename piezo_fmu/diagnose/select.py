@@ -23,11 +23,13 @@ statistics are in :mod:`.decide`, the rivals settled for the ordinary or simpler
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 from . import workers
 from .catalogue import CATALOGUE, other_charge, plausible, propose, shape_size
 from .decide import (CONFIDENT, at_bound, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score, told_apart)
+from .drifts import drift_alternatives
 from .delays import refine_delay
 from .fit import Fitter, free_names, get_value, set_value, strip
 from .loopshape import (SHAPE_BESIDE_BEYOND, SHAPE_BEYOND, SHAPE_BEYOND_NOMINAL, SHAPE_BEYOND_REMOVED,
@@ -87,7 +89,7 @@ def coupled(fitter, name, struct, s_new):
         return ["tau"]
     group = SLOW if name in SLOW else FAST
     owner = {"creep": "creep", "tau_leak": "sensor_leakage", "slew": "amplifier_current_limit",
-             "res_": "extra_resonance"}
+             "res_": "extra_resonance", "drift_tau": "thermal_drift"}
     old = set(free_names(struct, fitter.ordinary))
     keep = []
     for n in free_names(s_new, fitter.ordinary):
@@ -155,8 +157,11 @@ def _free(fitter, name, struct, s_new, dropped):
 
 
 def _bic_worth(fitter, fr, dropped):
-    """-BIC (up to a constant) of a fitted candidate that does without the ordinary items ``dropped``."""
-    k = -sum(ITEM_K[i] for i in dropped)
+    """-BIC (up to a constant) of a fitted candidate that does without the ordinary items ``dropped``
+    (-inf for a drift's warm-up at its floor: a start transient, rig-083; the quadratic beside it counts)."""
+    if "drift_tau" in free_names(fr.struct) and at_bound(fitter, fr.params, ["drift_tau"]):
+        return -math.inf
+    k = fr.struct.n_params() - sum(ITEM_K[i] for i in dropped)
     return -fitter.n_eff * math.log(max(fr.cost, 1e-300)) - k * math.log(max(fitter.n_eff, 2.0))
 
 
@@ -201,14 +206,8 @@ def _starts(fitter, name, current, held, struct, cctx, recal):
             a = propose(name, fitter, base, struct, cctx)
             if a is not None:
                 alts.append((a, list(drop_set)))
-    if (name == "thermal_drift" and start is not None and start.pick == "stack"
-            and "us" in cctx["channels"] and "mech_f" not in fitter.ordinary):
-        # without a visible first mode the pick-off is open: a sensor on the load spring
-        # follows the push rod, and the drift reaches it too (both are fitted, the better
-        # by BIC is kept)
-        a = start.copy()
-        a.pick = "load"
-        alts.append((a, []))
+    if name == "thermal_drift" and start is not None:
+        alts += [(a, []) for a in drift_alternatives(fitter, start, cctx)]
     sag = fitter.restart.get("y_sat", math.inf)
     if name in SLOW and math.isfinite(held.y_sat) and held.y_sat < SAG_DRAWN * sag:
         # a saturation the recalibration drew in may stand in for a slow mechanism (synth-1079, the
@@ -229,9 +228,8 @@ def _starts(fitter, name, current, held, struct, cctx, recal):
         if a is not None:
             alts.append((a, []))
     # the weights re-solved for each proposed dynamics (held weights fitted to other dynamics would
-    # make a good proposal look bad)
-    # (each start in its own copy: independent, on the two threads; varpro does not touch the
-    # strokes' cache, whose order decides the work counted)
+    # make a good proposal look bad); each start in its own copy: independent, on the two threads
+    # (varpro does not touch the strokes' cache, whose order decides the work counted)
     if name != "hysteresis_shape":
         workers.each(lambda x: fitter.varpro(x, struct.with_effect(name, 0, len(x.creep))),
                     [x for x in [start] + [a for a, _ in alts] if x is not None])
@@ -250,8 +248,9 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
         # creep start from the nominal sag with one element fewer, ended the diagnosis in an error)
         if st is None or (name == "creep" and len(st.creep) < s_new.creep_order):
             continue
-        free = _free(fitter, name, struct, s_new, dropped0)
-        fr = fitter.fit(st, s_new, free=free, max_nfev=10, held=name in FAST)
+        s_st = replace(s_new, drift_warmup=math.isfinite(st.drift_tau)) if name == "thermal_drift" else s_new
+        free = _free(fitter, name, struct, s_st, dropped0)
+        fr = fitter.fit(st, s_st, free=free, max_nfev=10, held=name in FAST)
         if name == "time_delay":
             # the screening's integer delay trades off against the lag: step it, then re-fit
             q = refine_delay(fitter, fr.params, s_new)
@@ -259,6 +258,7 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
                 fr = fitter.fit(q, s_new, free=free, max_nfev=6, held=True)
         fits.append(_simpler(fitter, name, struct, s_new, fr, recal, step, dropped0))
     fr, dropped = max(fits, key=lambda f: _bic_worth(fitter, f[0], f[1]))
+    s_new = fr.struct
     sets_new, _ = residual_sets(fitter, fr.params)
     k = s_new.n_params() - struct.n_params() - sum(ITEM_K[i] for i in dropped)
     cmp = compare(sets_cur, sets_new, k, noise, slow=name in SLOW)

@@ -16,7 +16,7 @@ from scipy.linalg import cho_factor, cho_solve, solve_triangular
 from scipy.optimize import lsq_linear
 
 from . import workers
-from .engine import at_samples, chain, leak, predict, replay, saturate, shift
+from .engine import at_samples, chain, drift_curvature, leak, predict, replay, saturate, shift
 from .model_io import Device, Params
 
 __all__ = ["residuals", "solve_linear"]
@@ -65,10 +65,11 @@ def _normal(ch, rec, dev, p, cols, nw, extra, rows):
             tl = shift(rec.t, lag)
             cmat[nw + 2] = tl
         if extra >= 2:
-            cmat[nw + 3] = tl * tl
+            cmat[nw + 3] = drift_curvature(tl, p.drift_tau)
     else:
         for j in range(extra):              # the drift's rate and curvature terms in the force
-            cmat[nw + 2 + j] = shift(leak(dev.k_load * rec.t ** (j + 1), p.tau_leak, rec.dt), lag)
+            term = rec.t if j == 0 else drift_curvature(rec.t, p.drift_tau)
+            cmat[nw + 2 + j] = shift(leak(dev.k_load * term, p.tau_leak, rec.dt), lag)
     return _gram(cmat, rec, rows), _gram_vec(cmat, getattr(rec, ch), rec, rows)
 
 
