@@ -88,6 +88,8 @@ class Params:
     cell_w: np.ndarray | None = None  # their weights [um of free stroke per unit of cell state]
     cells_held: bool = False         # the cells' weights held in their ratios (one column, one scale)
     cell_scale: float = 1.0          # that scale: the cells' weights are cell_w * cell_scale
+    classical: bool = False          # every PI weight >= 0 (the paper's identification: a classical
+                                     # loop), not only their partial sums (the recalibration's)
 
     @property
     def n_cells(self):

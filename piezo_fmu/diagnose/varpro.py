@@ -92,8 +92,7 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
     has_us = any(r.us is not None for r in recs)
     nd = 1 + drift_terms if has_x else 0
     n_par = nw + nd + (1 if has_us else 0)      # W (partial sums) | cells | x offset, rate, curv | us offset
-    diff = np.eye(nw)                           # w = diff @ theta[:nw]: partial sums for the PI,
-    diff[:n, :n] -= np.eye(n, k=-1)             # the cells' weights as they are (any sign)
+    diff = _weight_map(p, n, nw)                # w = diff @ theta[:nw]
     lin_w = p.all_weights() if np.any(p.all_weights()) else None
     iters = 1
     h0s = None                  # the stroke of the current weights (the first linearisation's)
@@ -167,12 +166,22 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
 LM_STEPS = (1e-4, 1e-2, 1.0, 100.0)   # Levenberg-Marquardt terms tried (scaled coordinates) after a failed step
 
 
+def _weight_map(p, n, nw):
+    """The matrix taking the solve's first ``nw`` unknowns to the weights: the PI's partial sums
+    (each bounded below, so the model stays invertible), or with ``p.classical`` the PI's weights
+    themselves (each bounded below: a classical loop); the cells' weights as they are (any sign)."""
+    diff = np.eye(nw)
+    if not p.classical:
+        diff[:n, :n] -= np.eye(n, k=-1)
+    return diff
+
+
 def _theta(p, dims):
     """The linear parameters of ``p`` as the solve's vector: partial sums of the PI weights, the
     cells' weights (or their scale), the x offset and drift, the us offset."""
     n, nw, nd, nt, n_par, ks, has_x, has_us, bilinear, drift_terms = dims
     th = np.zeros(n_par)
-    th[:n] = np.cumsum(p.weights)
+    th[:n] = p.weights if p.classical else np.cumsum(p.weights)
     if nw > n:
         th[n:nw] = [p.cell_scale] if p.cells_held else p.cell_w
     if has_x:
@@ -187,8 +196,7 @@ def _solve_into(p, grams, dims, lam, hint, before, prior, lm):
     gain alternated with the weights from its value ``before``; write the result into ``p``."""
     Mx, cx, Ms, cs, Px, qx = grams
     n, nw, nd, nt, n_par, ks, has_x, has_us, bilinear, drift_terms = dims
-    diff = np.eye(nw)
-    diff[:n, :n] -= np.eye(n, k=-1)
+    diff = _weight_map(p, n, nw)
     S = float(before["S"])
     # the sensor gain and the weights alternate until the gain settles: with both channels
     # the alternation converges only linearly, and a gain far from the data's (a sensor of
