@@ -35,7 +35,7 @@ from .fit import Fitter, free_names, get_value, set_value, strip
 from .loopshape import (SHAPE_BESIDE_BEYOND, SHAPE_BEYOND, SHAPE_BEYOND_NOMINAL, SHAPE_BEYOND_REMOVED,
                         SHAPE_EXPLAINED, SHAPE_EXPLAINED_EACH, SHAPE_FURTHER_EXPLAINED, SHAPE_PARTIAL_BEYOND,
                         SHAPE_PARTIAL_EXPLAINED, SHAPE_PARTIAL_REMOVED, SHAPE_REMOVED, beyond_classical,
-                        further_from_nominal, loop_beside)
+                        classical_named, further_from_nominal, loop_beside, shape_from_nominal, unnamed_loop)
 from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, drop, present, without
 from .residuals import ACCEPT, full_residuals, heldout_rmse, residual_peaks, residual_sets
 from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, creep_before_drift, delay_or_lag, drift_both,
@@ -537,15 +537,9 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             if passed and name == "hysteresis_shape":
                 ordinary = loop_beside(fitter, current, fr.params, struct, noise, p_base.thresholds)
                 if ordinary is not None:
-                    # its cells stay in, as the recalibration's finer loop, but it is not named
                     step(f"{name} is an ordinary loop difference once the others are in: {ordinary}")
-                    findings = [f for f in findings if f["name"] != name]
-                    rejected.append({"effect": name, "why": f"an ordinary loop difference once the others "
-                                                            f"are in: {ordinary}"})
-                    struct = struct.without(name).refine(struct.shape_extra)
-                    if recal is not None:
-                        recal.report["loop"] = {"operators": len(current.thresholds),
-                                                "kp_cells": current.n_cells, "refined": True}
+                    struct, findings = unnamed_loop(current, struct, findings, rejected, recal,
+                                                    f"an ordinary loop difference once the others are in: {ordinary}")
                     continue
             if not passed:
                 step(f"dropped {name}: {why}")
@@ -561,6 +555,9 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     # and 161, a creep with a false drift beside it, reached the budget before it was made)
     current, struct, findings = drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise,
                                                 cctx, step)
+    # (a check too: the loop the search ended with, against the nominal operators' classical loops)
+    struct, findings, measured = classical_named(fitter, current, struct, findings, rejected, p_base.thresholds,
+                                                 noise, recal, step)
     accepted = {f["name"] for f in findings}
     for f in findings:
         # a rival that is itself accepted explained another part of the residual (two mechanisms),
@@ -595,6 +592,9 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             struct = struct.without(f["name"])
         current = _without_weak(fitter, current, struct, p_base, weak[0]["before"])
     strong = [f for f in findings if f["confidence"] >= CONFIDENT]
+    if not measured and budget_note is None:    # (a search cut short: its loop draws what was not searched)
+        struct, strong, weak = shape_from_nominal(fitter, current, struct, strong, weak, rejected, p_base.thresholds,
+                                                  noise, recal, step)
     if budget_note:
         rejected.append({"effect": "-", "why": budget_note})
     return current, struct, strong, weak, rejected
