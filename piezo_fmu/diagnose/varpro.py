@@ -104,14 +104,17 @@ def solve_linear(recs, dev: Device, p: Params, lam: dict, *, drift_terms=0, fit_
         iters = gn_iter + (1 if lin_w is None else 0)
     # a load pick-off follows the push rod: a drift of the displacement reaches the sensor too
     nt = drift_terms if (has_x and has_us and p.pick == "load") else 0
-    # with KP cells the saturation's Gauss-Newton steps are damped: a step that raises the training
+    # with KP cells or a drift the saturation's Gauss-Newton steps are damped: a step that raises the training
     # cost is re-solved with a Levenberg-Marquardt term (up to four, growing), else the solve stops
     # where it was. Cells and operators combine into directions that shift the whole stroke while
     # the channel offsets take the shift back: free for the linearised problem, not for the
     # saturation (a full step moved the stroke by 12 um and the cost rose 3e4 -> 5e6, rig-052).
-    # Without cells the full step stays: halved steps left a screening whose weights had to move
-    # far short of them, and a first mode went unseen (rig-046)
-    damped = math.isfinite(p.y_sat) and p.n_cells > 0
+    # So are they with a drift: its rate and curvature columns trade with the saturation's known
+    # part, and one full step from weights fitted without them landed at a cost of 3.9e9 against
+    # 1.8e5 (rig-d11-021, a saturation at 117 um): the drift screened 0.71 worse than none and was
+    # never fitted. Without cells or a drift the full step stays: halved steps left a screening
+    # whose weights had to move far short of them, and a first mode went unseen (rig-046)
+    damped = math.isfinite(p.y_sat) and (p.n_cells > 0 or drift_terms > 0)
     r_last = residuals(recs, dev, p, lam, replays) if (damped and lin_w is not None) else None
     for _ in range(iters):
         before = _linear_state(p)
