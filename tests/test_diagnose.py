@@ -284,6 +284,23 @@ def test_the_linear_solve_recovers_a_drift_that_reaches_a_load_pickoff(tau_leak)
         assert np.max(np.abs(got[c] - pr[c])) < 1e-6 * np.ptp(pr[c]), c
 
 
+def _saturated_recording(rate=0.0):
+    """A noise-free recording of the paper's model with a sag of a third at the top of its stroke
+    (and a displacement drift of ``rate`` [um/s]): ``(rec, dev, true params, prediction, lam)``."""
+    m = load_model()
+    dt = 1e-3
+    t = np.arange(6001) * dt
+    u = 3.0 + 2.5 * np.sin(2 * np.pi * 1.0 * t) * (t > 0.5)
+    dev = device_from_model(m)
+    true = params_from_model(m, dt)
+    rec = Recording("a", t, dt, u, None, None, np.zeros(t.size, bool))
+    true.y_sat = 2.0 * np.max(np.abs(predict(rec, dev, true)["x_h"]))
+    true.rate = rate
+    pr = predict(rec, dev, true)
+    rec = Recording("a", t, dt, u, pr["x"], pr["us"], np.zeros(t.size, bool))
+    return rec, dev, true, pr, {"x": 1.0 / np.var(rec.x), "us": 1.0 / np.var(rec.us)}
+
+
 def test_the_linear_solve_starts_afresh_from_weights_deep_in_saturation():
     # weights left from other dynamics can drive the stroke far past the saturation level (rig-145:
     # 2e6 against 9.8e3 after its lag was swapped for a current limit); Gauss-Newton steps from
@@ -292,18 +309,7 @@ def test_the_linear_solve_starts_afresh_from_weights_deep_in_saturation():
 
     assert DEEP_SAT < 200.0             # the weights below put the stroke 200 x past the sag level
 
-    m = load_model()
-    dt = 1e-3
-    t = np.arange(6001) * dt
-    u = 3.0 + 2.5 * np.sin(2 * np.pi * 1.0 * t) * (t > 0.5)
-    dev = device_from_model(m)
-    true = params_from_model(m, dt)
-    rec = Recording("a", t, dt, u, None, None, np.zeros(t.size, bool))
-    stroke = np.max(np.abs(predict(rec, dev, true)["x_h"]))
-    true.y_sat = 2.0 * stroke           # a sag of a third at the top
-    pr = predict(rec, dev, true)
-    rec = Recording("a", t, dt, u, pr["x"], pr["us"], np.zeros(t.size, bool))
-    lam = {"x": 1.0 / np.var(rec.x), "us": 1.0 / np.var(rec.us)}
+    rec, dev, true, pr, lam = _saturated_recording()
     p = true.copy()
     p.weights = p.weights * 400.0      # |h| 200 x y_sat
     for _ in range(2):                  # as an optimisation calls it: the steps accumulate
@@ -320,18 +326,7 @@ def test_a_linear_solve_with_a_drift_never_takes_a_step_that_raises_its_cost(mon
     # is re-solved with a Levenberg-Marquardt term towards where it started, or not taken
     from piezo_fmu.diagnose import varpro
 
-    m = load_model()
-    dt = 1e-3
-    t = np.arange(6001) * dt
-    u = 3.0 + 2.5 * np.sin(2 * np.pi * 1.0 * t) * (t > 0.5)
-    dev = device_from_model(m)
-    true = params_from_model(m, dt)
-    rec = Recording("a", t, dt, u, None, None, np.zeros(t.size, bool))
-    true.y_sat = 2.0 * np.max(np.abs(predict(rec, dev, true)["x_h"]))
-    true.rate = 0.02
-    pr = predict(rec, dev, true)
-    rec = Recording("a", t, dt, u, pr["x"], pr["us"], np.zeros(t.size, bool))
-    lam = {"x": 1.0 / np.var(rec.x), "us": 1.0 / np.var(rec.us)}
+    rec, dev, true, pr, lam = _saturated_recording(rate=0.02)
     start = true.copy()
     start.rate = 0.0
     start.weights = start.weights * 0.9
