@@ -95,6 +95,15 @@ def activity(u, dt):
     return np.convolve(a, np.full(k, 1.0 / k))[:a.size]
 
 
+def _jump_onsets(u):
+    """Samples where the command ``u`` [V] jumps: a change of at least :data:`JUMP` of its span
+    within one sample."""
+    u = np.asarray(u, float)
+    span = float(np.ptp(u))
+    du = np.abs(np.diff(u, prepend=float(u[0])))
+    return np.flatnonzero(du >= JUMP * span) if span > 0 else np.zeros(0, int)
+
+
 def after_jumps(u, dt):
     """Samples within :data:`RESPONSE_S` after a jump of the command ``u`` [V] (a change of at
     least :data:`JUMP` of its span within one sample; ``dt`` [s] its step): True there.
@@ -106,12 +115,9 @@ def after_jumps(u, dt):
     plateau, and 85 samples of it took the held-out share of its correction from 1.00 to 0.27).
     """
     u = np.asarray(u, float)
-    span = float(np.ptp(u))
-    du = np.abs(np.diff(u, prepend=float(u[0])))
-    jumps = np.flatnonzero(du >= JUMP * span) if span > 0 else np.zeros(0, int)
     mask = np.zeros(u.size, bool)
     k = max(1, int(round(RESPONSE_S / dt)))
-    for j in jumps:
+    for j in _jump_onsets(u):
         mask[j:j + k] = True
     return mask
 
@@ -146,8 +152,7 @@ def blocks(n, n_blocks=N_BLOCKS, u=None, dt=None):
     default_held = np.arange(nb) % HELDOUT_EVERY == default
     trained = 1.0 - float(per_block[default_held].sum()) / total if total > 0.0 else 1.0
     # the jumps' first samples: where the fast dynamics (a lightly damped mode's ringing) show at all
-    du = np.abs(np.diff(np.asarray(u, float), prepend=float(u[0])))
-    onsets = np.flatnonzero(du >= JUMP * float(np.ptp(u))) if np.ptp(u) > 0 else np.zeros(0, int)
+    onsets = _jump_onsets(u)
     jumps_trained = onsets.size == 0 or not bool(np.all(default_held[block[onsets]]))
     if trained >= STARVED * (1.0 - 1.0 / HELDOUT_EVERY) and jumps_trained:
         return block, default_held[block], how
