@@ -1571,9 +1571,11 @@ def test_a_finer_loop_whose_refit_is_worse_on_held_out_data_keeps_its_own_fit(mo
     assert res["final"]["effects"] == truth, (res["candidates"], res["rejected"])
     assert res["final"]["rmse"]["x"] < 0.25 * res["baseline"]["rmse"]["x"]
     monkeypatch.setattr(select, "REFIT_WORSE", math.inf)     # the refit always taken: as before
-    res = analyse(raw).result
-    assert res["baseline"]["recalibrated"]["loop"]["refit_undone"] is False
-    assert res["final"]["effects"] != truth
+    before = analyse(raw).result
+    assert before["baseline"]["recalibrated"]["loop"]["refit_undone"] is False
+    # (with numpy 2.4.6 / scipy 1.17.1 the names come out right from the refit too, 2026-12-02; the
+    # final model is what it costs: x on held-out data 0.095 um against 0.021)
+    assert before["final"]["effects"] != truth or before["final"]["rmse"]["x"] > 2 * res["final"]["rmse"]["x"]
 
 
 def test_a_current_limit_a_slow_record_sees_on_two_samples_is_named(monkeypatch):
