@@ -284,6 +284,51 @@ def test_the_linear_solve_recovers_a_drift_that_reaches_a_load_pickoff(tau_leak)
         assert np.max(np.abs(got[c] - pr[c])) < 1e-6 * np.ptp(pr[c]), c
 
 
+def test_the_sensor_gain_alternation_reaches_the_same_gain_in_fewer_rounds(monkeypatch):
+    # the sensor gain and the weights alternate until the gain settles (linear convergence: tens of
+    # rounds from a gain far from the data's); the gain's sequence extrapolated every third round
+    # (varpro._aitken) ends at the same gain and weights in a fraction of the solves
+    from piezo_fmu.diagnose import varpro
+
+    m = load_model()
+    dt = 1e-3
+    t = np.arange(6001) * dt
+    u = 2.0 + 2.0 * np.sin(2 * np.pi * 1.0 * t) * (t > 0.5) + 0.8 * np.sin(2 * np.pi * 7.0 * t)
+    dev = device_from_model(m)
+    true = params_from_model(m, dt)
+    true.y_sat = math.inf
+    rec = Recording("a", t, dt, u, None, None, np.zeros(t.size, bool))
+    pr = predict(rec, dev, true)
+    rng = np.random.default_rng(5)
+    x = pr["x"] + 0.02 * np.ptp(pr["x"]) * rng.standard_normal(t.size)
+    us = pr["us"] + 0.02 * np.ptp(pr["us"]) * rng.standard_normal(t.size)
+    rec = Recording("a", t, dt, u, x, us, np.zeros(t.size, bool))
+    lam = {"x": 1.0 / np.var(rec.x), "us": 1.0 / np.var(rec.us)}
+    solves = []
+    real = varpro._bounded_normal_solve
+
+    def counted(*a, **k):
+        solves.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(varpro, "_bounded_normal_solve", counted)
+    out = {}
+    for name, aitken in (("plain", lambda seq, S: S), ("extrapolated", varpro._aitken)):
+        monkeypatch.setattr(varpro, "_aitken", aitken)
+        solves.clear()
+        p = true.copy()
+        p.S *= 3.0
+        p.weights = p.weights * 0.5
+        varpro.solve_linear([rec], dev, p, lam)
+        out[name] = (len(solves), p)
+    (n_plain, p_plain), (n_fast, p_fast) = out["plain"], out["extrapolated"]
+    assert n_plain >= 20, n_plain                                  # a genuinely slow alternation
+    assert n_fast < 0.5 * n_plain, (n_fast, n_plain)                 # measured: 13 against 34
+    assert p_fast.S == pytest.approx(p_plain.S, rel=1e-6)
+    assert p_fast.weights == pytest.approx(p_plain.weights, rel=1e-5)
+    assert p_fast.S == pytest.approx(true.S, rel=0.05)
+
+
 def _saturated_recording(rate=0.0):
     """A noise-free recording of the paper's model with a sag of a third at the top of its stroke
     (and a displacement drift of ``rate`` [um/s]): ``(rec, dev, true params, prediction, lam)``."""
@@ -779,6 +824,56 @@ def test_an_operator_the_data_never_move_gets_no_weight():
     theta = _bounded_normal_solve(m.T @ m, m.T @ y, n_bounded=0)
     assert np.all(np.isfinite(theta)) and abs(theta[3]) < 1e-6
     assert theta[:3] == pytest.approx([1.0, 0.5, 0.25], abs=1e-3)
+
+
+def test_the_bounded_weights_solve_finds_what_bvls_finds_without_running_it(monkeypatch):
+    # the weights' solve runs inside the sensor gain's alternation (tens of rounds per solve, 52 000
+    # solves on rig-d13-034): the active sets (varpro._active_set) settle in one or two least-squares
+    # solves on the bound-free columns where bvls iterates. Same minimiser, bvls never needed
+    from scipy.optimize import lsq_linear
+
+    from piezo_fmu.diagnose import varpro
+
+    rng = np.random.default_rng(11)
+    problems = []
+    for k in range(40):
+        n, nb = 12, 9
+        m = rng.standard_normal((400, n))
+        m[:, 1] = m[:, 0] + 10.0 ** -(k % 5) * m[:, 1]           # nearly collinear columns
+        theta = rng.standard_normal(n)                            # some partial sums below zero
+        y = m @ theta + 0.01 * rng.standard_normal(400)
+        problems.append((m, y, nb))
+    want = []
+    for m, y, nb in problems:
+        d = np.linalg.norm(m, axis=0)
+        lb = np.full(m.shape[1], -np.inf)
+        lb[:nb] = 1e-6 * d[:nb]
+        want.append(lsq_linear(m / d, y, bounds=(lb, np.inf), method="bvls", lsmr_tol=None, tol=1e-14).x / d)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("bvls run")
+
+    monkeypatch.setattr(varpro, "lsq_linear", refuse)
+    active = 0
+    for (m, y, nb), w in zip(problems, want):
+        theta = varpro._bounded_normal_solve(m.T @ m, m.T @ y, n_bounded=nb)
+        cost = np.sum((m @ theta - y) ** 2)
+        assert cost <= np.sum((m @ w - y) ** 2) * (1 + 1e-9)
+        assert np.all(theta[:nb] > 0)
+        assert theta == pytest.approx(w, rel=1e-5, abs=1e-6 * np.max(np.abs(w)))
+        active += int(np.sum(theta[:nb] < 1e-5 * np.max(np.abs(theta))))
+    assert active >= 40                                           # the bounds did bind
+
+    # a guess that holds the wrong entries still ends at the minimiser
+    m, y, nb = problems[0]
+    d = np.linalg.norm(m, axis=0)
+    R = np.linalg.qr(m / d, mode="r")
+    q = np.linalg.lstsq(R.T, (m / d).T @ y, rcond=None)[0]
+    lb = np.full(m.shape[1], -np.inf)
+    lb[:nb] = 1e-6 * d[:nb]
+    for guess in (np.zeros(nb, bool), np.ones(nb, bool)):
+        t = varpro._active_set(R, q, lb, nb, guess)
+        assert t is not None and t / d == pytest.approx(want[0], rel=1e-5, abs=1e-6 * np.max(np.abs(want[0])))
 
 
 # -- devices the tool was not built from (piezo_fmu.rig, written independently) ----------------------
@@ -1301,12 +1396,14 @@ def test_a_finding_turned_candidate_leaves_the_final_model_no_worse_than_the_rec
         mp.setattr(select, "_without_weak", spy)
         res = analyse(raw).result
     assert calls, "no finding was turned into a candidate"
-    assert res["final"]["effects"] == ["creep"] == rec.truth["mechanisms"]
-    # (and a loop found only at the search's end, a candidate at the confidence such loops earned on a
-    # fresh draw: the one-channel creep's misfit in the loop, 2026-12-01)
+    assert res["candidates"][0]["effect"] == "time_delay", res["candidates"]
+    # (and a loop found only at the search's end, the one-channel creep's misfit in the loop: named at
+    # the confidence such loops earned on the fresh draws, 9/14 since 2026-12-02, a false name here;
+    # a candidate at 3/7, the draw 11 figure alone)
     from piezo_fmu.diagnose.loopshape import SHAPE_NOMINAL_RIGHT
-    assert [c["effect"] for c in res["candidates"]] == ["time_delay", "hysteresis_shape"], res["candidates"]
-    assert res["candidates"][1]["confidence"] == pytest.approx(SHAPE_NOMINAL_RIGHT, abs=1e-3)
+    assert res["final"]["effects"] == ["creep", "hysteresis_shape"] and rec.truth["mechanisms"] == ["creep"]
+    shape = next(f for f in res["findings"] if f["effect"] == "hysteresis_shape")
+    assert shape["confidence"] == pytest.approx(SHAPE_NOMINAL_RIGHT, abs=1e-3)
     before, after = res["baseline"]["rmse"], res["final"]["rmse"]
     for c in before:
         assert after[c] <= before[c], (c, before[c], after[c])      # measured: 0.90 of it

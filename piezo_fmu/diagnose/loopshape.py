@@ -293,10 +293,11 @@ SHAPE_NOMINAL_SHOWN = 0.5
 # lost), four of them 1.9-2.5, under the bar for a loop the rounds did not name
 SHAPE_NAMED_NEAR = 1.5
 # A loop shape found only at the search's end (:func:`shape_from_nominal`) was right in 8 of 9 cases
-# on rig draw 10, where its rules were set, and in 3 of 7 on the fresh draw 11 (2026-12-01: false
-# beside a creep, a further mode, both, and in place of a missed current limit, 3.5-30 noise rms from
-# the classical loops): its confidence is at most that fresh precision, a candidate, never a name
-SHAPE_NOMINAL_RIGHT = 3 / 7
+# on rig draw 10, where its rules were set, in 3 of 7 on the fresh draw 11 (2026-12-01: false beside a
+# creep, a further mode, both, and in place of a missed current limit, 3.5-30 noise rms from the
+# classical loops) and in 6 of 7 on the fresh draw 13 (2026-12-02: false in place of a missed current
+# limit, rig-d13-099): its confidence is at most the precision over the fresh draws, 9 of 14
+SHAPE_NOMINAL_RIGHT = 9 / 14
 NOMINAL_SCALES = tuple(np.geomspace(0.05, 2.0, 24))   # the top threshold [the recorded stack-voltage span]
 
 

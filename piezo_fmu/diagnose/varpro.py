@@ -24,6 +24,7 @@ __all__ = ["residuals", "solve_linear"]
 S_ROUNDS = 200     # most alternations of the sensor gain with the weights per solve
 S_TOL = 1e-9       # relative change of the sensor gain at which the alternation stops
 CELL_RIDGE = 1e-9  # ridge on the KP cells' weights, relative to each column's squared norm
+AS_ROUNDS = 8      # active-set rounds of the bounded solve before it falls back to bvls
 
 
 # the saturation's Gauss-Newton steps start from the current weights unless these drive the
@@ -204,7 +205,9 @@ def _solve_into(p, grams, dims, lam, hint, before, prior, lm):
     # the sensor gain and the weights alternate until the gain settles: with both channels
     # the alternation converges only linearly, and a gain far from the data's (a sensor of
     # another sensitivity) needs tens of rounds; three left the displacement at a fifth of
-    # its stroke (rig-125)
+    # its stroke (rig-125). Every third round the gain's sequence is extrapolated to its limit
+    # (Aitken): a linearly converging sequence's limit from three of its terms
+    seq = [S]
     for _ in range(S_ROUNDS if bilinear else 1):
         S_prev = S
         G = np.zeros((n_par, n_par))
@@ -243,6 +246,10 @@ def _solve_into(p, grams, dims, lam, hint, before, prior, lm):
                 S = float(s_new)
             if abs(S - S_prev) <= S_TOL * abs(S):
                 break
+            seq.append(S)
+            if len(seq) == 3:
+                S = _aitken(seq, S)
+                seq = [S]
     p.weights = w[:n]
     if nw > n:
         if p.cells_held:
@@ -256,6 +263,16 @@ def _solve_into(p, grams, dims, lam, hint, before, prior, lm):
         p.curv = float(sol[nw + 2]) if drift_terms >= 2 else 0.0
     if has_us:
         p.off_s = float(sol[n_par - 1])
+
+
+def _aitken(seq, S):
+    """The limit of the gain's three last alternation values ``seq`` (Aitken's delta-squared), or
+    ``S`` when they do not contract towards one (or it would not be a positive gain)."""
+    d1, d2 = seq[1] - seq[0], seq[2] - seq[1]
+    if d1 == 0.0 or abs(d2) >= abs(d1) or d2 * d1 <= 0.0:
+        return S
+    s_lim = seq[2] - d2 * d2 / (d2 - d1)
+    return float(s_lim) if (s_lim > 0.0 and math.isfinite(s_lim)) else S
 
 
 _LINEAR = ("weights", "cell_w", "cell_scale", "S", "off_x", "rate", "curv", "off_s")
@@ -352,8 +369,43 @@ def _bounded_normal_solve(G, rhs, n_bounded, scale_hint=1.0, ridge=(0, 0), prior
     lb[:n_bounded] = eps * d[:n_bounded]
     if np.all(unc[:n_bounded] >= lb[:n_bounded]):
         return unc / d
-    res = lsq_linear(R, q, bounds=(lb, np.full(len(d), np.inf)), method="bvls", lsmr_tol=None)
-    return res.x / d
+    sol = _active_set(R, q, lb, n_bounded, unc[:n_bounded] < lb[:n_bounded])
+    if sol is None:
+        sol = lsq_linear(R, q, bounds=(lb, np.full(len(d), np.inf)), method="bvls", lsmr_tol=None).x
+    return sol / d
+
+
+def _active_set(R, q, lb, n_bounded, guess, rounds=AS_ROUNDS):
+    """``min ||R t - q||`` with ``t[:n_bounded] >= lb[:n_bounded]`` (``R`` square, upper
+    triangular, full rank) by primal-dual active sets started from ``guess`` (the bounded entries
+    held at their bound): a least-squares solve on the free columns, then every free entry below
+    its bound joins the set and every held one whose gradient points into the feasible side
+    leaves it, until the KKT conditions hold.
+
+    The minimiser is unique, so this is the solution ``lsq_linear(method="bvls")`` approximates,
+    in one or two solves where bvls takes tens of iterations: the weights' solve runs inside the
+    sensor gain's alternation (tens of rounds, the active set the same from one to the next).
+    The solves are on ``R``'s columns (QR), not on ``R^T R``: the KP cells' and the finer loop's
+    columns are nearly collinear, and the normal matrix squares their condition. ``None`` when the
+    sets have not settled after ``rounds``: the caller runs bvls."""
+    n = len(q)
+    held = np.zeros(n, bool)
+    held[:n_bounded] = guess
+    tol = 1e-10 * max(float(np.max(np.abs(R.T @ q))), 1e-300)
+    t = np.empty(n)
+    for _ in range(rounds):
+        free = ~held
+        t[held] = lb[held]
+        t[free] = np.linalg.lstsq(R[:, free], q - R[:, held] @ lb[held], rcond=None)[0]
+        g = R.T @ (R @ t - q)                           # the multipliers of the held entries
+        below = free.copy()
+        below[n_bounded:] = False
+        below &= t < lb
+        leave = held & (g < -tol)
+        if not below.any() and not leave.any():
+            return t
+        held = (held & ~leave) | below
+    return None
 
 
 def residuals(recs, dev, p, lam, replays=None, rows="train"):
