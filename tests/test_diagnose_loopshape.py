@@ -112,15 +112,14 @@ def test_a_loop_the_nominal_operators_cannot_draw_is_named(monkeypatch):
     res = analyse(raw, say=steps.append).result
     assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
     assert any("further from the nominal operators' loops" in m for m in steps), steps
-    # without that measure (the rule before) found only when the search ends (its loop lies 4.7 noise
-    # rms from every classical loop of the nominal operators, at any scale), at the confidence such
-    # findings earned on the fresh draws (named since that reached 9/14, 2026-12-02) ...
+    # without that measure (the rule before) a candidate still, when the search ends (its loop lies
+    # 4.7 noise rms from every classical loop of the nominal operators, at any scale) ...
     from piezo_fmu.diagnose import loopshape
     monkeypatch.setattr(select, "SHAPE_BEYOND_NOMINAL", float("inf"))
     res = analyse(raw).result
-    assert res["final"]["effects"] == ["hysteresis_shape"]
-    assert [f["effect"] for f in res["findings"]] == ["hysteresis_shape"], res["findings"]
-    assert 0.5 <= res["findings"][0]["confidence"] <= loopshape.SHAPE_NOMINAL_RIGHT + 1e-3   # measured: 0.53
+    assert res["final"]["effects"] == []
+    assert [(c["effect"], c["confidence"]) for c in res["candidates"]] == [
+        ("hysteresis_shape", pytest.approx(loopshape.SHAPE_NOMINAL_RIGHT, abs=1e-3))], res["candidates"]
     # ... and without both an ordinary loop difference: nothing is missing
     monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_FAR", float("inf"))
     monkeypatch.setattr(loopshape, "SHAPE_NAMED_NEAR", float("inf"))
@@ -211,7 +210,7 @@ def test_a_loop_far_from_every_classical_one_is_named_beside_other_misfit(monkey
 
 def test_a_loop_with_other_misfit_beside_it_waits_for_the_physics_that_passed():
     # rig-158: a 1.05 ms (8-sample) delay and a band of switching domains at 7.65 kHz. In the first
-    # round the finer loop explains 45 % (2.6 noise rms, 3.3 from every classical loop) and the
+    # round the finer loop explains 45-47 % (2.6 noise rms, 3.3 from every classical loop) and the
     # delay, which passed beside it, 35 %. Named on that partial evidence the loop's cells took the delay's
     # misfit and both were lost (the shape a candidate at 0.30); taken in as an ordinary
     # difference, the delay is named in the next round
@@ -222,7 +221,10 @@ def test_a_loop_with_other_misfit_beside_it_waits_for_the_physics_that_passed():
     steps = []
     res = analyse(raw, say=steps.append).result
     assert res["final"]["effects"] == ["time_delay"], (res["candidates"], res["rejected"])
-    assert any("round 1: the finer loop explains 45 %" in m and "not named" in m for m in steps), steps
+    loop = [m for m in steps if "round 1: the finer loop explains" in m and "not named" in m]
+    assert loop, steps
+    # measured: 45 % with bvls, 47 % with the active-set solve (2026-12-02)
+    assert 40 <= float(loop[0].split("explains ")[1].split(" %")[0]) <= 50, loop
 
 
 def test_a_loop_of_another_family_is_not_named_on_its_distance_from_the_nominal_operators(monkeypatch):
@@ -304,14 +306,14 @@ def test_the_distance_from_the_nominal_operators_is_taken_at_their_best_voltage_
     assert nominal_distance(fitter, _negative_weight(p), noise, nominal)[0] > 1.0
 
 
-def test_a_loop_far_from_the_nominal_operators_at_the_search_end_is_named_at_the_fresh_draws_precision(monkeypatch):
+def test_a_loop_far_from_the_nominal_operators_at_the_search_end_is_a_candidate(monkeypatch):
     # rig-d10-030 (1.16 kHz): a KP device with a band of switching domains. The recalibrated PI
     # (free-signed weights, thresholds at 0.57 of the stroke's voltage span) draws most of it; the
     # finer loop removes 1.4 noise rms more and is taken in as an ordinary loop difference. The loop
     # the search ends with lies 10.8 noise rms from every classical loop of the nominal operators,
-    # and refitted with one the model fits far worse: a loop shape, but one found only there, so at
-    # most the confidence such findings earned on the fresh draws (9 of 14 right on draws 11 and 13):
-    # named at that confidence, a candidate below CONFIDENT (at 3/7, the draw 11 figure alone)
+    # and refitted with one the model fits far worse: a loop shape, but one found only there (right
+    # in 11 of 19 on the fresh draws 11, 13 and 14), so a candidate at the lower end of that
+    # precision's interval
     from piezo_fmu.diagnose import loopshape
     from piezo_fmu.diagnose.run import analyse
 
@@ -319,16 +321,17 @@ def test_a_loop_far_from_the_nominal_operators_at_the_search_end_is_named_at_the
     assert rec.truth["mechanisms"] == ["hysteresis_shape"]
     steps = []
     res = analyse(raw, say=steps.append).result
-    assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
+    assert res["final"]["effects"] == [], res["final"]["verdict"]
     far = [m for m in steps if "from every classical loop of the nominal operators" in m]
     assert far and float(far[0].split("lies ")[1].split(" x")[0]) >= loopshape.SHAPE_NOMINAL_FAR, far
-    assert res["findings"][0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_RIGHT, abs=1e-3), res["findings"]
-    assert "refitted with one the model fits the data worse" in res["findings"][0]["evidence"]["note"]
-    monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_RIGHT", 3 / 7)
-    res = analyse(raw).result
-    assert res["final"]["effects"] == [], res["final"]["verdict"]
     shape = [c for c in res["candidates"] if c["effect"] == "hysteresis_shape"]
-    assert shape and shape[0]["confidence"] == pytest.approx(3 / 7, abs=1e-3), res["candidates"]
+    assert shape and shape[0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_RIGHT, abs=1e-3), res["candidates"]
+    # trusted as the data's own confidence says (the rule as it was set on draw 10): named
+    assert loopshape.SHAPE_NOMINAL_RIGHT < 0.5
+    monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_RIGHT", 1.0)
+    res = analyse(raw).result
+    assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
+    assert "refitted with one the model fits the data worse" in res["findings"][0]["evidence"]["note"]
     # without the final measure (the rule before): an ordinary loop difference, no candidate either
     monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_FAR", float("inf"))
     monkeypatch.setattr(loopshape, "SHAPE_NAMED_NEAR", float("inf"))
@@ -411,3 +414,16 @@ def test_a_named_loop_between_the_two_bars_stays_named(monkeypatch):
     # undone at the other bar: the leakage alone
     monkeypatch.setattr(loopshape, "SHAPE_NAMED_NEAR", loopshape.SHAPE_NOMINAL_FAR)
     assert analyse(raw).result["final"]["effects"] == ["sensor_leakage"]
+
+
+def test_a_loop_found_at_the_search_end_is_as_confident_as_the_lower_end_of_its_fresh_precision():
+    # the Wilson score interval of 5 right in 10 at z = 1.96 is 0.2366-0.7634 (the textbook value);
+    # the end's loop shapes, 11 right of 19 on the fresh draws, stay below CONFIDENT: candidates
+    from piezo_fmu.diagnose import loopshape
+    from piezo_fmu.diagnose.decide import CONFIDENT
+
+    assert loopshape._wilson_lower(5, 10, 1.96) == pytest.approx(0.2366, abs=1e-4)
+    assert loopshape._wilson_lower(10, 10, 1.2816) < 1.0
+    right, found = loopshape.SHAPE_NOMINAL_FRESH
+    assert loopshape.SHAPE_NOMINAL_RIGHT == pytest.approx(0.4333, abs=1e-4)
+    assert loopshape.SHAPE_NOMINAL_RIGHT < CONFIDENT < right / found
