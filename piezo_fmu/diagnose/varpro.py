@@ -383,8 +383,9 @@ def _active_set(R, q, lb, n_bounded, guess, rounds=AS_ROUNDS):
     leaves it, until the KKT conditions hold.
 
     The minimiser is unique, so this is the solution ``lsq_linear(method="bvls")`` approximates,
-    in one or two solves where bvls takes tens of iterations: the weights' solve runs inside the
-    sensor gain's alternation (tens of rounds, the active set the same from one to the next).
+    in one or two solves where bvls takes tens of iterations (the caller starts from the bounds
+    the unconstrained solution violates, which are nearly always the active ones); the weights'
+    solve runs inside the sensor gain's alternation, tens of times per linear solve.
     The solves are on ``R``'s columns (QR), not on ``R^T R``: the KP cells' and the finer loop's
     columns are nearly collinear, and the normal matrix squares their condition. ``None`` when the
     sets have not settled after ``rounds``: the caller runs bvls."""
