@@ -27,7 +27,8 @@
 5. ``diagnose_s``: ``diagnose`` (outputs included) on a fixed set of hard cases, each a synthetic
    recording of 20 s at 10 kHz with two channels: a resonant plant (first mode at 900 Hz, the
    sensor between stack and push rod, and a further mode to find), two mechanisms (creep and a
-   delay) and a long record with creep; ``diagnose_s`` is the slowest (target < 60 s),
+   delay) and a long record with creep, and (full size) recordings of the independent rig as drawn
+   (:data:`DIAGNOSE_RIG_CASES`); ``diagnose_s`` is the slowest (target < 60 s),
    ``diagnose_median_s`` the median, ``diagnose_cases`` each case's seconds and what it named.
 6. ``write_csv_s``, ``write_parquet_s``: writing the 1e6 rows of a 100 s run recorded every 1e-4 s
    (the command line's default) through :class:`piezo_fmu.results.RunWriter` (target < 5 s).
@@ -226,13 +227,32 @@ DIAGNOSE_CASES = (
 )
 
 
-def _diagnose_figures(model_path, seconds, fs, workdir):
-    """``diagnose`` (outputs included) on each hard case: median and slowest seconds."""
+# and recordings of the independent rig (``piezo_fmu.rig``, its own plant and hysteresis), as drawn:
+# (name, draw, case id). rig-d14-095 was the slowest case of fresh draw 14 (74.7 s two at a time):
+# a 1.1 kHz first mode, creep and a loop shape, 14.3 s at 5.08 kHz
+DIAGNOSE_RIG_CASES = (
+    ("independent rig device", 14, "rig-d14-095"),
+)
+
+
+def _diagnose_figures(model_path, seconds, fs, workdir, rig_cases=True):
+    """``diagnose`` (outputs included) on each hard case (``rig_cases``: with the rig's): median and
+    slowest seconds."""
+    from . import rig
     from .diagnose import diagnose
     from .diagnose.synth import make_case, write_recording
     from .model import load_model, with_values
 
     cases = {}
+    for name, draw, case_id in (DIAGNOSE_RIG_CASES if rig_cases else ()):
+        rec = rig.generate(next(s for s in rig.cases(draw=draw) if s.case_id == case_id), twins=True)
+        path = Path(workdir) / f"{case_id}.csv"
+        rig.write_csv(rec, path)
+        t0 = time.perf_counter()
+        diag = diagnose([str(path)], model_path, Path(workdir) / "diagnosis", force=True)
+        cases[f"{name} ({case_id})"] = {"seconds": time.perf_counter() - t0, "truth": list(rec.truth["mechanisms"]),
+                                        "named": list(diag.result["final"]["effects"]),
+                                        "samples": int(rec.u.size)}
     for name, seed, effects, changes in DIAGNOSE_CASES:
         base = with_values(load_model(model_path), changes, "bench: a resonant plant") if changes else None
         case = make_case(seed, effects=effects, fs=fs, duration=seconds, channels=("x", "us"), base=base)
@@ -344,8 +364,10 @@ def run_bench(size="full", model=None, say=None) -> dict:
         say("PI operator throughput")
         out.update(_pi_figures(m, cfg["pi_n"], cfg["reps"]))
         seconds, fs = cfg["diag"]
-        say(f"diagnose on {len(DIAGNOSE_CASES)} hard cases, each {seconds:g} s at {fs:g} Hz with two channels")
-        out.update(_diagnose_figures(model_path, seconds, fs, tmp))
+        rig_cases = size == "full"
+        say(f"diagnose on {len(DIAGNOSE_CASES)} hard cases, each {seconds:g} s at {fs:g} Hz with two channels"
+            + (f", and {len(DIAGNOSE_RIG_CASES)} of the independent rig" if rig_cases else ""))
+        out.update(_diagnose_figures(model_path, seconds, fs, tmp, rig_cases=rig_cases))
         out["diagnose_recording"] = {"seconds": seconds, "rate_hz": fs, "channels": ["x", "us"]}
     say("sweeps on dask (piezo_fmu.sweep.throughput): 1 and 2 workers, 1 and 2 plain processes")
     out.update(measure_throughput(size, say=say))

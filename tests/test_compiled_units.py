@@ -190,3 +190,51 @@ def test_without_numba_the_error_says_what_to_install(monkeypatch):
     monkeypatch.setattr(compiled, "available", lambda: False)
     with pytest.raises(RuntimeError, match="pip install numba"):
         compiled.compile_unit(_actuator())
+
+
+def test_a_changed_source_of_any_compiled_module_gives_another_cache_folder(tmp_path):
+    # numba's own cache checks only the compiled function's file; a kernel with a callee inlined
+    # from another file (the runners, the diagnose engine's amp_run) must not load stale code
+    from pathlib import Path
+    import shutil
+
+    pkg = Path(compiled.__file__).resolve().parent.parent
+    copy_ = tmp_path / "piezo_fmu"
+    shutil.copytree(pkg / "core", copy_ / "core")
+    (copy_ / "diagnose").mkdir()
+    shutil.copy(pkg / "diagnose" / "engine.py", copy_ / "diagnose" / "engine.py")
+    shutil.copy(pkg / "simulate.py", copy_ / "simulate.py")
+    first = compiled.sources_digest(copy_)
+    assert first == compiled.sources_digest(pkg)
+    seen = {first}
+    for rel in ("core/plant.py", "core/hysteresis.py", "diagnose/engine.py", "simulate.py"):
+        f = copy_ / rel
+        f.write_text(f.read_text() + "\n# changed\n")
+        seen.add(compiled.sources_digest(copy_))
+    assert len(seen) == 5
+
+
+def test_a_second_process_loads_the_compiled_kernels_from_the_cache(tmp_path):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    probe = ("import json, numpy as np\n"
+             "from piezo_fmu.core import compiled\n"
+             "from piezo_fmu.model import load_model\n"
+             "from piezo_fmu.system import make_actuator\n"
+             "act = compiled.compile_unit(make_actuator(load_model()))\n"
+             "x = [act.advance(1.0 + 0.5 * k, 1e-4) for k in range(50)]\n"
+             "run = compiled.kernels()['actuator_run']\n"
+             "print(json.dumps({'dir': str(compiled.cache_dir()), 'hits': len(run.stats.cache_hits),\n"
+             "                  'x': [float(v) for v in x]}))\n")
+    env = {**os.environ, "PIEZO_FMU_CACHE": str(tmp_path)}
+    runs = [json.loads(subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
+                                      check=True).stdout) for _ in range(2)]
+    assert runs[0]["dir"].startswith(str(tmp_path)) and runs[0]["dir"] == runs[1]["dir"]
+    assert runs[0]["hits"] == 0 and runs[1]["hits"] >= 1
+    assert runs[0]["x"] == runs[1]["x"]
+    off = subprocess.run([sys.executable, "-c", "from piezo_fmu.core import compiled; print(compiled.cache_dir())"],
+                         env={**env, "PIEZO_FMU_CACHE": "off"}, capture_output=True, text=True, check=True)
+    assert off.stdout.strip() == "None"

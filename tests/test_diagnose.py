@@ -1627,12 +1627,18 @@ def test_a_loop_beside_a_named_mechanism_must_lie_further_from_the_classical_one
     assert "hysteresis_shape" in analyse(raw).result["final"]["effects"]
 
 
-def test_a_loop_named_before_another_mechanism_is_judged_again_beside_it():
+def test_a_loop_named_before_another_mechanism_is_judged_again_beside_it(monkeypatch):
     # rig-d1-145: a current limit on a Bouc-Wen-like device. The first round named a loop shape
     # (47 % explained, 13.5 noise rms from every classical loop): the limit's misfit, which no
     # candidate yet explained, bent the loop. The second round named the limit. The backward check
     # measures the loop again with the limit in: 0.66 noise rms from the classical ones, an
     # ordinary loop difference (its cells stay in as the recalibration's finer loop, not named)
+    # The path to the outcome is chaotic in round-off (stop 61: on an Intel Xeon the active-set solve
+    # of the weights, within 3e-9 of bvls's cost in every one of its 1632 solves on rig-d10-133, led
+    # to the same names by another rule); the rule tested is the one it was set with on bvls's solves,
+    # so the test runs every bounded solve by bvls (the reference solver)
+    from piezo_fmu.diagnose import varpro
+    monkeypatch.setattr(varpro, "_active_set", lambda *args, **kwargs: None)
     from piezo_fmu.diagnose.run import analyse
 
     rec, raw = _rig_recording("rig-d1-145")

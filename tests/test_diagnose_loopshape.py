@@ -361,6 +361,12 @@ def test_a_loop_that_removes_little_of_its_departure_on_a_channel_is_not_named(m
     # 89 noise rms in the sensor channel that no model here draws): the final loop lies 2.65 noise rms
     # from the classical ones on x and 1.06 on us, and its classical refit is refused on x, but on us
     # the loop removes nothing of its departure: it bent to other misfit
+    # The path to the outcome is chaotic in round-off (stop 61: on an Intel Xeon the active-set solve
+    # of the weights, within 3e-9 of bvls's cost in every one of its 1632 solves on rig-d10-133, led
+    # to the same names by another rule); the rule tested is the one it was set with on bvls's solves,
+    # so the test runs every bounded solve by bvls (the reference solver)
+    from piezo_fmu.diagnose import varpro
+    monkeypatch.setattr(varpro, "_active_set", lambda *args, **kwargs: None)
     from piezo_fmu.diagnose import loopshape
     from piezo_fmu.diagnose.run import analyse
 

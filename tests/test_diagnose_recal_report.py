@@ -30,11 +30,15 @@ def _check_judged(rc):
     judged = 0
     for key in NONLINEAR:
         v = rc.get(key)
-        if not isinstance(v, dict) or v.get("relative_uncertainty") is None or v["value"] <= 0:
+        if not isinstance(v, dict) or v["value"] <= 0 or (v.get("relative_uncertainty") is None
+                                                          and "determined" not in v):
             continue
         judged += 1
         assert "determined" in v, (key, v)
         at_bound = "search_range" in v
+        if v["relative_uncertainty"] is None:       # fitted, and no sample responds to it
+            assert v["determined"] is False and (at_bound or "changes no sample" in v["why_undetermined"]), (key, v)
+            continue
         if at_bound:
             lo, hi = v["search_range"]               # (value and range each rounded to 5-6 digits)
             assert lo * (1 - 1e-4) <= v["value"] <= hi * (1 + 1e-4), (key, v)
@@ -47,7 +51,10 @@ def _check_judged(rc):
 def test_a_lag_the_recording_cannot_resolve_is_reported_as_not_determined(tmp_path):
     # rig-d3-165: a 0.62 ms amplifier lag sampled at 264 Hz (3.8 ms a sample) behind a current limit.
     # The recalibrated lag (0.10 ms, 1.7e12 x its value as standard uncertainty, stop 44) is six times
-    # off the truth: it is reported as not determined, with the reason, in the json and the html
+    # off the truth: it is reported as not determined, with the reason, in the json and the html.
+    # Between samples it decays by exp(-38), below round-off: on some CPUs no sample moves with it
+    # at all (stop 61, an Intel Xeon: its Jacobian column exactly zero, and then no value had an
+    # uncertainty); it is then reported without a figure, as not determined, and the rest keep theirs
     from piezo_fmu.diagnose.report import write_outputs
 
     truth, d = _rig("rig-d3-165")
@@ -56,6 +63,7 @@ def test_a_lag_the_recording_cannot_resolve_is_reported_as_not_determined(tmp_pa
     tau = rc["amplifier_tau_s"]
     assert abs(math.log(tau["value"] / truth["amplifier.tau_output"]["value"])) > math.log(2), tau
     assert tau["determined"] is False and "does not determine" in tau["why_undetermined"], tau
+    assert rc["pi_scale_um"]["relative_uncertainty"] is not None, rc["pi_scale_um"]
     write_outputs(d, tmp_path / "out", figures=False)
     html = (tmp_path / "out" / "report.html").read_text()
     assert html.count("not determined:") == sum(1 for k in NONLINEAR if rc.get(k, {}).get("determined") is False)
@@ -90,3 +98,20 @@ def test_a_lag_the_recording_resolves_is_reported_as_determined():
     assert _check_judged(rc) >= 1
     tau = rc["amplifier_tau_s"]
     assert tau["determined"] is True and tau["relative_uncertainty"] < 0.5, tau
+
+
+def test_a_parameter_no_sample_responds_to_has_no_figure_and_leaves_the_others_theirs():
+    import numpy as np
+
+    from piezo_fmu.diagnose.uncertainty import sensitive
+
+    rng = np.random.default_rng(3)
+    r0 = rng.normal(size=200)                       # the residual: norm about 14
+    J = rng.normal(size=(200, 3))
+    J[:, 1] = 0.0
+    assert sensitive(J, r0) == [True, False, True]
+    J[:, 1] = 1e-13 * J[:, 0]                       # round-off, not a response
+    assert sensitive(J, r0) == [True, False, True]
+    J[:, 1] = 1e-6 * rng.normal(size=200)           # weak, but a response
+    assert sensitive(J, r0) == [True, True, True]
+    assert sensitive(np.zeros((5, 2)), r0[:5]) == [False, False]

@@ -36,6 +36,7 @@ import numpy as np
 from scipy.signal import lfilter, ss2tf, tf2sos
 
 from ..core import plant
+from ..core.compiled import jit
 from ..core.linear import discretize, tf2ss
 from ..core.plant import drift_curvature, mechanics_tf, mode_tf, series_tf
 from ..core.preisach import kp_relax, kp_step, kp_table
@@ -63,11 +64,9 @@ __all__ = [
 
 @lru_cache(maxsize=1)
 def _kernels():
-    import numba
+    amp_step = jit(plant.amp_step, nogil=True)
 
-    amp_step = numba.njit(cache=True, nogil=True)(plant.amp_step)
-
-    @numba.njit(cache=True, nogil=True)
+    @jit(nogil=True)
     def amp_run(uc, nd, k_amp, tau, slew, u_min, u_max, h, tau2, out):
         # the core's actuator_step up to ua (delay line, input stage, output stage)
         decay = math.exp(-h / tau)
@@ -91,7 +90,7 @@ def _kernels():
             out[k + 1] = ua
         return out
 
-    @numba.njit(cache=True, nogil=True, inline="always")
+    @jit(nogil=True, inline="always")
     def play(z, v, r):
         # one play operator (threshold r) moved by the input v: the rule of core.hysteresis.pi_step
         lo = v - r
@@ -99,7 +98,7 @@ def _kernels():
             return lo
         return min(z, v + r)
 
-    @numba.njit(cache=True, nogil=True)
+    @jit(nogil=True)
     def play_run(v, r, z, z0):
         # the operators are independent: one pass per operator keeps the writes contiguous
         for i in range(r.size):
@@ -111,7 +110,7 @@ def _kernels():
                 row[k] = zi
         return z
 
-    @numba.njit(cache=True, nogil=True)
+    @jit(nogil=True)
     def pi_run(v, r, w, y_inv, out, z0):
         # the weighted sum of the operators (and the strain saturation) without storing them
         out[:] = 0.0
@@ -127,7 +126,7 @@ def _kernels():
                 out[k] = out[k] / (1.0 + abs(out[k]) * y_inv)
         return out
 
-    @numba.njit(cache=True, nogil=True)
+    @jit(nogil=True)
     def cell_run(v, up, down, width, s0, ref, mu, out):
         # each KP cell on its own (the rule of core.preisach.kp_step), counted from its relaxed
         # state: its states into out[i], or (mu given) its weighted states summed into out[0]
@@ -153,12 +152,12 @@ def _kernels():
                     row[k] = s - r
         return out
 
-    @numba.njit(cache=True, nogil=True, inline="always")
+    @jit(nogil=True, inline="always")
     def section(sos, s):
         # one second-order section's coefficients [b0 b1 b2 1 a1 a2]: b0, b1, b2, a1, a2
         return sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
 
-    @numba.njit(cache=True, nogil=True)
+    @jit(nogil=True)
     def sos_run(sos, x, gain, c0, dc, out):
         # scipy's sosfilt recursion (transposed direct form II, from rest), bit for bit, on every
         # row of x at once: the samples outside, the rows inside, so the rows' independent

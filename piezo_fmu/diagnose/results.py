@@ -461,14 +461,16 @@ def _judge(out, fitter, p):
     """Mark each recalibrated nonlinear value the recording does not determine (``determined``
     false, with ``why_undetermined``): one at a bound of its search range (a mechanism's parameter
     there is never accepted; an ordinary one there is reported as such) or one whose standard
-    uncertainty exceeds ``UNDETERMINED`` x the value. Values not fitted (no uncertainty) are left
-    as they are."""
+    uncertainty exceeds ``UNDETERMINED`` x the value, or one no sample responds to (uncertainty
+    ``inf``, reported as None). Values not fitted (no uncertainty) are left as they are."""
     for key, name in _REPORTED.items():
         v = out.get(key)
         if not isinstance(v, dict) or v.get("relative_uncertainty") is None or v["value"] <= 0:
             continue
         edge = at_bound(fitter, p, [name]) if fitter is not None and name is not None else []
         u = v["relative_uncertainty"]
+        if not math.isfinite(u):        # no sample responds to it: no figure (JSON has no infinity)
+            v["relative_uncertainty"] = None
         if edge:
             lo, hi = edge[0]["range"]
             end = "lower" if math.log(v["value"] / lo) < math.log(hi / v["value"]) else "upper"
@@ -476,6 +478,10 @@ def _judge(out, fitter, p):
             v.update(determined=False, search_range=[lo, hi],
                      why_undetermined=f"at the {end} end of its search range {lo:.4g}-{hi:.4g}{unit}: the "
                                       "recording does not place it inside")
+        elif not math.isfinite(u):
+            v.update(determined=False,
+                     why_undetermined="moving it by 0.1 % changes no sample: the recording does not "
+                                      "determine it")
         elif u > UNDETERMINED:
             v.update(determined=False,
                      why_undetermined=f"its standard uncertainty is {u:.2g} x the value: the recording "
