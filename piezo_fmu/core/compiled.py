@@ -148,13 +148,18 @@ def jit(func=None, **opts):
     if func is None:
         return lambda f: jit(f, **opts)
     where = cache_dir()
-    if where is None:
+    # numba caches only functions whose code names a source file it finds: inside an FMU the
+    # bundled core's do not (stop 61: "cannot cache function 'pi_tail': no locator available for
+    # file .../resources/_pz_actuator_.../core/hysteresis.py", the Actuator's engine refused)
+    if where is None or not os.path.isfile(func.__code__.co_filename):
         return numba.njit(**opts)(func)
     with _CACHE_LOCK:       # numba reads its cache folder when the dispatcher is made
         saved = config.CACHE_DIR
         config.CACHE_DIR = str(where)
         try:
             return numba.njit(cache=True, **opts)(func)
+        except RuntimeError:        # no cache locator for this function: compiled each time
+            return numba.njit(**opts)(func)
         finally:
             config.CACHE_DIR = saved
 
