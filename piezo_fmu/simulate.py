@@ -327,7 +327,7 @@ def simulate(model: Model, signal: Signal, stop_time: float, *, step=None, mode=
     if engine == "numba":      # compile (first call in the process) outside the timed loop
         announce = progress is not None and not _COMPILED_LOOP_RAN
         if announce:
-            progress(0.0, "compiling the model with numba (once per process, a few seconds)")
+            progress(0.0, "compiling the model with numba (the first time: a few seconds; then loaded from the cache)")
         w0 = time.perf_counter()
         runner(0, h, t0, 0, rec_every, ctrl_every, np.zeros(1), use_ext, np.zeros(1), *a, *s, *c,
                np.empty((1, 7)))

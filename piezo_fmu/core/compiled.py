@@ -21,8 +21,8 @@ FMUs and the interpreted engine need only NumPy; :func:`available` tells whether
   sources it is compiled from (this package's ``core`` and the modules that compile kernels of
   their own) and of the numba and Python versions: numba's own cache checks only the file of the
   function it compiles, so a kernel with a callee inlined from another file would be loaded
-  stale after that file changed. With the cache a process loads the kernels (~0.1 s) instead of
-  compiling them (6-12 s on 2 cores). ``PIEZO_FMU_CACHE`` names the cache's parent folder
+  stale after that file changed. With the cache a process loads the kernels (about 1.5 s for
+  the whole set on 2 cores) instead of compiling them (6-15 s). ``PIEZO_FMU_CACHE`` names the cache's parent folder
   (default ``$XDG_CACHE_HOME/piezo-fmu`` or ``~/.cache/piezo-fmu``; ``off``: nothing cached).
 * Dependencies point one way: this module imports the units' modules (to compile their kernels);
   they never import it. A unit only knows that it may be handed a runner
@@ -43,8 +43,8 @@ from . import control, hysteresis, linear, plant, preisach
 from .control import compensator_step
 from .plant import actuator_step
 
-__all__ = ["ENGINES", "available", "cache_dir", "jit", "sources_digest", "kernels", "compile_function", "compile_unit", "warm",
-           "actuator_run",
+__all__ = ["ENGINES", "available", "cache_dir", "jit", "sources_digest", "kernels", "compile_function",
+           "compile_unit", "warm", "actuator_run",
            "compensator_run", "KERNEL_ORDER", "ACTUATOR_REGIONS", "COMPENSATOR_REGIONS"]
 
 ENGINES = {"python": 0, "numba": 1}     # Integer codes of the FMUs' simulation.engine parameter
