@@ -195,6 +195,29 @@ def test_the_compiled_sos_filter_is_scipys_sosfilt_to_the_bit():
     assert not np.array_equal(sos_filter(sos, x, gain, c0, 1.7), sosfilt(sos, x * gain, axis=-1))
 
 
+def test_the_sos_filter_flushes_states_that_decay_into_subnormal_numbers():
+    # an input back at exact zero lets a filter's state decay into subnormal doubles (some hundred
+    # cycles an operation on an Intel Xeon), where scipy's recursion can stay in a limit cycle;
+    # the engine's states below TINY are zero at the end of each BLOCK samples: the same numbers
+    # while they are larger, exact zeros after, in a design (rows side by side) as row by row
+    from scipy.signal import sosfilt
+
+    from piezo_fmu.diagnose.engine import BLOCK, TINY, sos_filter
+
+    sos = np.array([[0.02, 0.01, 0.0, 1.0, -1.0, 0.36]])         # poles at radius 0.6
+    x = np.zeros((6, 40 * BLOCK))
+    x[:, 3] = np.array([1.0, -2.0, 3e-3, 5e5, 1e-200, 7.0])      # an impulse, then exact zeros
+    ref = sosfilt(sos, x, axis=-1)
+    got = sos_filter(sos, x)
+    tiny = np.abs(ref) < 2.2250738585072014e-308
+    assert np.any(tiny & (ref != 0.0), axis=1).all()            # scipy's rows do go subnormal
+    big = np.abs(ref) > 1e6 * TINY
+    assert np.array_equal(got[big], ref[big])
+    assert np.all(got[:, -BLOCK:] == 0.0)                        # flushed, not ringing in subnormals
+    assert not np.any((got != 0.0) & (np.abs(got) < 2.2250738585072014e-308))
+    rows = np.vstack([sos_filter(sos, x[i]) for i in range(x.shape[0])])
+    assert np.array_equal(rows, got)
+
 @pytest.mark.parametrize("settled", [False, True])
 def test_a_sensor_held_under_force_before_the_record_has_leaked_its_charge(settled):
     # a record that starts under a force (the operators prepared by a sweep to 100 V, the command
