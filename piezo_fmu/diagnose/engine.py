@@ -489,7 +489,9 @@ def _leak_start(n, dc, h, tau_leak):
 
 def sos_filter(sos, cols, gain=1.0, c0=None, dc=1.0):
     """``scipy.signal.sosfilt(sos, cols, axis=-1)`` (from rest; ``sos`` normalised, a0 = 1), the
-    same numbers, with all rows of ``cols`` filtered in one compiled pass. With ``c0`` (one value
+    same numbers except that states below :data:`TINY` are zero at the end of every :data:`BLOCK`
+    samples (no subnormal limit cycles), with all rows of ``cols`` filtered in one compiled pass
+    (a row alone gives the numbers it gives in a design). With ``c0`` (one value
     per row, shaped as ``cols[..., :1]``) the filter runs from a settled start, as
     ``sosfilt(sos, cols * gain - c0) + dc * c0`` (``dc``: the static gain, one value or one per
     sample)."""
