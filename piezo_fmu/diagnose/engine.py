@@ -208,62 +208,38 @@ def _kernels():
                     out[0, k] = out[0, k] + dc[k * dstep] * c0[0]
             return out
         # a design (many rows): BLOCK samples of every row at a time in a buffer that stays in the
-        # cache, section after section, four rows' recursions side by side in registers (they are
-        # independent: each waits on its own multiply-adds while the others proceed)
+        # cache, the rows side by side (their recursions are independent: the loop over them
+        # vectorises while each waits on its own multiply-adds)
         z1 = np.zeros((ns, n))
         z2 = np.zeros((ns, n))
-        buf = np.empty((n, BLOCK))
+        buf = np.empty((BLOCK, n))
         for k0 in range(0, m, BLOCK):
             nb = min(BLOCK, m - k0)
             for i in range(n):
                 for j in range(nb):
-                    buf[i, j] = x[i, k0 + j] * gain - c0[i] if settled else x[i, k0 + j] * gain
+                    buf[j, i] = x[i, k0 + j] * gain - c0[i] if settled else x[i, k0 + j] * gain
             for s in range(ns):
                 b0, b1, b2, a1, a2 = section(sos, s)
-                i = 0
-                while i < n:
-                    if i + 4 <= n:
-                        r0, r1, r2, r3 = buf[i], buf[i + 1], buf[i + 2], buf[i + 3]
-                        p0, p1, p2, p3 = z1[s, i], z1[s, i + 1], z1[s, i + 2], z1[s, i + 3]
-                        q0, q1, q2, q3 = z2[s, i], z2[s, i + 1], z2[s, i + 2], z2[s, i + 3]
-                        for j in range(nb):
-                            x0, x1, x2, x3 = r0[j], r1[j], r2[j], r3[j]
-                            y0 = b0 * x0 + p0
-                            y1 = b0 * x1 + p1
-                            y2 = b0 * x2 + p2
-                            y3 = b0 * x3 + p3
-                            p0 = b1 * x0 - a1 * y0 + q0
-                            p1 = b1 * x1 - a1 * y1 + q1
-                            p2 = b1 * x2 - a1 * y2 + q2
-                            p3 = b1 * x3 - a1 * y3 + q3
-                            q0 = b2 * x0 - a2 * y0
-                            q1 = b2 * x1 - a2 * y1
-                            q2 = b2 * x2 - a2 * y2
-                            q3 = b2 * x3 - a2 * y3
-                            r0[j], r1[j], r2[j], r3[j] = y0, y1, y2, y3
-                        z1[s, i], z1[s, i + 1], z1[s, i + 2], z1[s, i + 3] = flush(p0), flush(p1), flush(p2), flush(p3)
-                        z2[s, i], z2[s, i + 1], z2[s, i + 2], z2[s, i + 3] = flush(q0), flush(q1), flush(q2), flush(q3)
-                        i += 4
-                    else:
-                        r0 = buf[i]
-                        p0 = z1[s, i]
-                        q0 = z2[s, i]
-                        for j in range(nb):
-                            x0 = r0[j]
-                            y0 = b0 * x0 + p0
-                            p0 = b1 * x0 - a1 * y0 + q0
-                            q0 = b2 * x0 - a2 * y0
-                            r0[j] = y0
-                        z1[s, i] = flush(p0)
-                        z2[s, i] = flush(q0)
-                        i += 1
+                p1 = z1[s]
+                p2 = z2[s]
+                for j in range(nb):
+                    row = buf[j]
+                    for i in range(n):
+                        xi = row[i]
+                        yi = b0 * xi + p1[i]
+                        p1[i] = b1 * xi - a1 * yi + p2[i]
+                        p2[i] = b2 * xi - a2 * yi
+                        row[i] = yi
+                for i in range(n):
+                    p1[i] = flush(p1[i])
+                    p2[i] = flush(p2[i])
             for i in range(n):
                 if settled:
                     for j in range(nb):
-                        out[i, k0 + j] = buf[i, j] + dc[(k0 + j) * dstep] * c0[i]
+                        out[i, k0 + j] = buf[j, i] + dc[(k0 + j) * dstep] * c0[i]
                 else:
                     for j in range(nb):
-                        out[i, k0 + j] = buf[i, j]
+                        out[i, k0 + j] = buf[j, i]
         return out
 
     return amp_run, play_run, pi_run, cell_run, sos_run
