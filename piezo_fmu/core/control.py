@@ -29,7 +29,7 @@ import math
 
 from .buffers import pack
 from .hysteresis import PrandtlIshlinskii, pi_load, pi_save, pi_state, pi_step, pi_table
-from .linear import LinearSystem, as_floats, lti_advance, same_step
+from .linear import TINY, LinearSystem, as_floats, lti_advance, same_step
 
 __all__ = ["MODES", "INVERSES", "SIGNALS", "reference_value", "pid_step", "compensator_step",
            "Compensator", "inverse_filter_tf"]
@@ -76,7 +76,8 @@ def pid_step(e, h, gains, st, sat):
     if not ((sat > 0 and e > 0) or (sat < 0 and e < 0)):
         st[0] += gains[1] * h * e
     if gains[2] != 0.0:
-        st[1] = (gains[3] * st[1] + gains[2] * (e - st[2])) / (gains[3] + h)
+        d = (gains[3] * st[1] + gains[2] * (e - st[2])) / (gains[3] + h)
+        st[1] = d if abs(d) >= TINY else 0.0      # no subnormal state (see linear.TINY)
     st[2] = e
     return gains[0] * e + st[0] + st[1]
 

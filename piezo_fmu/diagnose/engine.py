@@ -37,7 +37,7 @@ from scipy.signal import lfilter, ss2tf, tf2sos
 
 from ..core import plant
 from ..core.compiled import jit
-from ..core.linear import discretize, tf2ss
+from ..core.linear import TINY, discretize, tf2ss
 from ..core.plant import drift_curvature, mechanics_tf, mode_tf, series_tf
 from ..core.preisach import kp_relax, kp_step, kp_table
 from .model_io import Device, Params, Recording, device_from_model, model_from_params, params_from_model
@@ -70,8 +70,8 @@ __all__ = [
 # stops far less): a 39-row design of rig-d14-095 took 36 ns per sample and row against 12 ns on
 # random input, and its subnormal outputs slowed the Gram products after it. 1e-290 is below
 # anything a signal in these units can mean and above where a product with a filter coefficient
-# turns subnormal. Everything else is scipy's sosfilt to the bit (tests/test_diagnose.py).
-TINY = 1e-290
+# turns subnormal. Everything else is scipy's sosfilt to the bit (tests/test_diagnose.py). The
+# core's units use the same threshold (core.linear.TINY), flushed every step.
 BLOCK = 64
 
 @lru_cache(maxsize=1)
