@@ -15,16 +15,36 @@ def pytest_collection_modifyitems(config, items):
 
     The suite runs on every core (``-n auto --dist loadgroup`` in pyproject.toml). Tests are
     dealt out one by one, but a module-scoped fixture (a diagnosis, an installed wheel, a
-    co-simulation) would then be computed once per worker that draws one of its tests; the
-    tests of a module that use any are put in one ``xdist_group`` named after the module.
-    Session fixtures (the FMUs) are built once per worker.
+    co-simulation) would then be computed once per worker that draws one of its tests. Within a
+    module, the tests joined by the module-scoped fixtures they use (directly, or through a test
+    that uses two) form one ``xdist_group``, named ``module::fixture`` after the first fixture of
+    the group in alphabetical order (with ``[i]`` for the i-th parameter of a parametrized one): a
+    module with two unrelated fixtures (two diagnoses) spreads over two workers. Session fixtures (the FMUs) are built once per worker.
     """
+    uses = {}
     for item in items:
         info = getattr(item, "_fixtureinfo", None)
         if info is None:
             continue
-        if any(defs and defs[-1].scope == "module" for defs in info.name2fixturedefs.values()):
-            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+        names = sorted(name for name, defs in info.name2fixturedefs.items() if defs and defs[-1].scope == "module")
+        # each parameter of a parametrized module fixture is a fixture of its own
+        index = getattr(getattr(item, "callspec", None), "indices", {})
+        if names:
+            uses[item] = [f"{item.module.__name__}::{name}" + (f"[{index[name]}]" if name in index else "")
+                          for name in names]
+    parent = {}
+
+    def root(key):
+        while parent.setdefault(key, key) != key:
+            key = parent[key]
+        return key
+
+    for keys in uses.values():
+        for key in keys[1:]:
+            a, b = root(keys[0]), root(key)
+            parent[max(a, b)] = min(a, b)
+    for item, keys in uses.items():
+        item.add_marker(pytest.mark.xdist_group(root(keys[0])))
 
 
 @pytest.fixture(scope="session")

@@ -33,9 +33,9 @@ def readme_text():
 
 def test_tests_sharing_a_module_fixture_are_kept_on_one_worker(request, readme_text):
     # conftest.pytest_collection_modifyitems: with `--dist loadgroup` an xdist_group keeps the
-    # module's fixture users together, so the fixture is computed once, not once per worker
+    # fixture's users together, so the fixture is computed once, not once per worker
     marker = request.node.get_closest_marker("xdist_group")
-    assert marker is not None and marker.args == (__name__,)
+    assert marker is not None and marker.args == (f"{__name__}::readme_text",)
     assert "pytest-xdist" in readme_text
 
 
