@@ -62,8 +62,7 @@ def amp_step(ua, target, tau, slew, h, decay):
     """Exact amplifier response over ``h`` [s] to a constant ``target`` = k_amp*uc [V].
 
     ``tau`` = R C_a [s], ``slew`` = I_max / C_a [V/s] (``inf`` = no current limit),
-    ``decay`` = exp(-h/tau) (precomputed). Returns the amplifier voltage at the end of the step
-    (``target`` itself once it lies within :data:`~.linear.TINY` of it).
+    ``decay`` = exp(-h/tau) (precomputed). Returns the amplifier voltage at the end of the step.
     """
     e = target - ua
     if abs(e) > slew * tau:
@@ -72,10 +71,7 @@ def amp_step(ua, target, tau, slew, h, decay):
         if t_ramp >= h:
             return ua + sgn * slew * h
         return target - sgn * slew * tau * math.exp(-(h - t_ramp) / tau)
-    rest = e * decay
-    if abs(rest) < TINY:        # settled: no subnormal remainder (see linear.TINY)
-        return target
-    return target - rest
+    return target if abs(e * decay) < TINY else target - e * decay     # no subnormal remainder (TINY)
 
 
 def drift_curvature(t, tau):
@@ -122,8 +118,7 @@ def actuator_step(uc, h, t_end, amp, amp_s, dly, dly_buf, pi_r, pi_w, pi_z, pi_k
     if amp[6] > 0.0:
         # input stage, exact for the held command; the output stage sees its mean over the step
         e2 = amp_s[1] - uc
-        if abs(e2) < TINY:
-            e2 = 0.0
+        e2 = e2 if abs(e2) >= TINY else 0.0
         amp_s[1] = uc + e2 * amp[7]
         uc = uc + e2 * amp[8]
     target = amp[0] * uc
@@ -448,9 +443,7 @@ def sensor_step(force, h, sen, sen_s, noise):
         # w1 = a w0 - S_q [ (1 - a) f0 + (force - f0) (1 - (1 - a) * tau/h) ]
         r = sen[2]
         w = a * sen_s[0] - sq * ((1.0 - a) * f0 + (force - f0) * (1.0 - (1.0 - a) * r))
-        if abs(w) < TINY:       # leaked away: no subnormal state (see linear.TINY)
-            w = 0.0
-        sen_s[0] = w
+        sen_s[0] = w if abs(w) >= TINY else 0.0     # leaked away: no subnormal state (linear.TINY)
     sen_s[1] = force
     nl = int(sen[4])
     if nl > 0:
