@@ -19,7 +19,8 @@ def pytest_collection_modifyitems(config, items):
     module, the tests joined by the module-scoped fixtures they use (directly, or through a test
     that uses two) form one ``xdist_group``, named ``module::fixture`` after the first fixture of
     the group in alphabetical order (with ``[i]`` for the i-th parameter of a parametrized one): a
-    module with two unrelated fixtures (two diagnoses) spreads over two workers. Session fixtures (the FMUs) are built once per worker.
+    module with two unrelated fixtures (two diagnoses) spreads over two workers. Session fixtures
+    (the FMUs) are built once per worker.
     """
     uses = {}
     for item in items:
