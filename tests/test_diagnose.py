@@ -193,6 +193,17 @@ def test_the_compiled_sos_filter_is_scipys_sosfilt_to_the_bit():
         assert np.array_equal(sos_filter(sos, x[2], gain, c0[2], d), want[2])
     assert np.array_equal(sos_filter(sos, x, gain), sosfilt(sos, x * gain, axis=-1))
     assert not np.array_equal(sos_filter(sos, x, gain, c0, 1.7), sosfilt(sos, x * gain, axis=-1))
+    # every path of the kernel (a row alone with one, two or more sections; rows four at a time
+    # and one by one; many rows side by side, DESIGN_ROWS) gives every row scipy's numbers
+    from piezo_fmu.diagnose.kernels import DESIGN_ROWS
+
+    y = rng.normal(size=(DESIGN_ROWS + 3, 1001)).cumsum(axis=1)
+    for ns in (1, 2, 3, 5):
+        for n in (1, 2, 4, 6, DESIGN_ROWS, DESIGN_ROWS + 3):
+            c0 = y[:n, :1] * 0.37
+            want = sosfilt(sos[:ns], y[:n] * 0.37 - c0, axis=-1) + dc[:1001] * c0
+            assert np.array_equal(sos_filter(sos[:ns], y[:n], 0.37, c0, dc[:1001]), want), (ns, n)
+            assert np.array_equal(sos_filter(sos[:ns], y[:n]), sosfilt(sos[:ns], y[:n], axis=-1)), (ns, n)
 
 
 def test_the_sos_filter_flushes_states_that_decay_into_subnormal_numbers():
@@ -202,7 +213,9 @@ def test_the_sos_filter_flushes_states_that_decay_into_subnormal_numbers():
     # while they are larger, exact zeros after, in a design (rows side by side) as row by row
     from scipy.signal import sosfilt
 
-    from piezo_fmu.diagnose.engine import BLOCK, TINY, sos_filter
+    from piezo_fmu.core.linear import TINY
+    from piezo_fmu.diagnose.engine import sos_filter
+    from piezo_fmu.diagnose.kernels import BLOCK, DESIGN_ROWS
 
     sos = np.array([[0.02, 0.01, 0.0, 1.0, -1.0, 0.36]])         # poles at radius 0.6
     x = np.zeros((6, 40 * BLOCK))
@@ -217,6 +230,10 @@ def test_the_sos_filter_flushes_states_that_decay_into_subnormal_numbers():
     assert not np.any((got != 0.0) & (np.abs(got) < 2.2250738585072014e-308))
     rows = np.vstack([sos_filter(sos, x[i]) for i in range(x.shape[0])])
     assert np.array_equal(rows, got)
+    many = np.vstack([x, x])                                     # (side by side: DESIGN_ROWS)
+    assert many.shape[0] >= DESIGN_ROWS
+    assert np.array_equal(sos_filter(sos, many), np.vstack([got, got]))
+
 
 @pytest.mark.parametrize("settled", [False, True])
 def test_a_sensor_held_under_force_before_the_record_has_leaked_its_charge(settled):

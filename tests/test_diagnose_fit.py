@@ -1,7 +1,10 @@
 """The fitter's weights-held evaluations (``diagnose.fit.Fitter.quick`` / ``held``): a stroke
 computed once serves every model that differs only after the loop, with the same numbers, and is
-counted as the chain-only work it is."""
+counted as the chain-only work it is; the worker threads give the numbers of one thread."""
+import json
+
 import numpy as np
+import pytest
 
 from piezo_fmu.diagnose import fit
 from piezo_fmu.diagnose.engine import device_from_model, params_from_model
@@ -109,15 +112,61 @@ def test_work_started_on_a_worker_thread_runs_there_in_order():
     from piezo_fmu.diagnose import workers
 
     got = []
-    t = threading.Thread(target=lambda: got.append(workers.each(
-        lambda a: (threading.current_thread().name, workers.each(lambda b: a * b, [1, 2, 3])), [1, 2])),
-        daemon=True)
-    t.start()
-    t.join(30.0)
+    with workers.limit(2):          # (the suite may run diagnose on one thread: conftest)
+        t = threading.Thread(target=lambda: got.append(workers.each(
+            lambda a: (threading.current_thread().name, workers.each(lambda b: a * b, [1, 2, 3])), [1, 2])),
+            daemon=True)
+        t.start()
+        t.join(30.0)
     assert got, "nested work waited for itself"
     (name1, row1), (name2, row2) = got[0]
     assert row1 == [1, 2, 3] and row2 == [2, 4, 6]
     assert name1.startswith("diagnose-pool") and name2.startswith("diagnose-pool")
+
+
+def test_a_diagnosis_on_one_thread_is_the_diagnosis_on_two(tmp_path, monkeypatch):
+    # the suite runs diagnose on one thread (conftest: both cores are busy with tests); the
+    # default is two. The evaluations spread over them are independent: the same result to the
+    # bit, every number of diagnosis.json but the timings
+    from piezo_fmu.diagnose import diagnose, workers
+    from piezo_fmu.diagnose.synth import make_case, write_recording
+
+    case = make_case(1003, effects=("creep",), fs=1000.0, duration=3.0)
+    path = tmp_path / "rec.csv"
+    write_recording(path, case)
+    pooled = []
+    made = workers.pool
+    monkeypatch.setattr(workers, "pool", lambda n=None: pooled.append(n) or made(n))
+    runs = {}
+    for n in (1, 2):
+        res = diagnose([path], threads=n, time_budget_s=None).result
+        res.pop("timing_s")
+        runs[n] = json.dumps(res, sort_keys=True)
+        assert len(pooled) > 20 if n == 2 else not pooled, (n, len(pooled))
+    assert runs[1] == runs[2]
+
+
+def test_the_thread_count_is_checked():
+    from piezo_fmu.diagnose import workers
+    from piezo_fmu.errors import UserError
+
+    with workers.limit(3):
+        assert workers.thread_count() == 3
+    for bad in (0, 1.5, -2):
+        with pytest.raises(UserError, match="whole number"):
+            with workers.limit(bad):
+                pass
+
+
+def test_a_bad_thread_count_in_the_environment_is_a_users_error(monkeypatch):
+    from piezo_fmu.diagnose import workers
+    from piezo_fmu.errors import UserError
+
+    monkeypatch.setenv(workers.THREADS_ENV, "two")
+    with pytest.raises(UserError, match=workers.THREADS_ENV):
+        workers.thread_count()
+    monkeypatch.setenv(workers.THREADS_ENV, "1")
+    assert workers.thread_count() == 1
 
 
 def test_costs_with_the_weights_re_solved_are_varpros_one_after_another():

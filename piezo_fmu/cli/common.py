@@ -38,6 +38,19 @@ def positive(name):
     return parse
 
 
+def count(name):
+    """argparse type: a whole number >= 1 (the message names the option)."""
+    def parse(text):
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a whole number, got {text!r}") from None
+        if v < 1:
+            raise argparse.ArgumentTypeError(f"{name} must be at least 1, got {text}")
+        return v
+    return parse
+
+
 def finite(name):
     """argparse type: a finite number (the message names the option)."""
     def parse(text):

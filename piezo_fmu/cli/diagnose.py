@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import add_quiet, positive, progress_for, say
+from .common import add_quiet, count, positive, progress_for, say
 
 __all__ = ["register", "summary"]
 
@@ -47,7 +47,7 @@ def cmd_diagnose(args):
     scale = parse_mapping(args.scale, "--scale", numeric=True)
     diag = diagnose(args.recordings, args.model, args.out, force=args.force, columns=columns or None,
                     scale=scale or None, say=lambda msg: bar(None, msg), figures=not args.no_figures,
-                    replay_rate=args.replay_rate)
+                    replay_rate=args.replay_rate, threads=args.threads)
     bar.close()
     print(summary(diag.result))
     say(args, f"wrote {args.out}/ (diagnosis.json, fit.csv, model.toml, report.html) in "
@@ -84,6 +84,10 @@ def register(sub):
                         "(the amplifier's and the push rod's motion between the samples; e.g. 8000 for a "
                         "recording at 1 kHz of a device with a sub-ms amplifier lag or a mode of a few "
                         "hundred Hz). Default: one step per sample (faster)")
+    p.add_argument("--threads", type=count("--threads"), default=None, metavar="N",
+                   help="worker threads for the independent evaluations (default 2, or the environment "
+                        "variable PIEZO_FMU_DIAGNOSE_THREADS); 1 costs less CPU where the cores are busy "
+                        "anyway (diagnoses side by side). The result does not depend on it")
     p.add_argument("--force", action="store_true", help="overwrite existing output files")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures (report without images)")
     add_quiet(p)

@@ -17,7 +17,7 @@ __all__ = ["diagnose"]
 
 
 def diagnose(recordings, model=None, out=None, *, force=False, columns=None, scale=None, say=None,
-             figures=True, time_budget_s=40.0, replay_rate=None):
+             figures=True, time_budget_s=40.0, replay_rate=None, threads=None):
     """Diagnose recording files against a model; write the results into ``out`` when given.
 
     Parameters
@@ -46,6 +46,10 @@ def diagnose(recordings, model=None, out=None, *, force=False, columns=None, sca
         Replay rate [Hz]: a recording sampled slower is replayed with several internal steps per
         sample (the amplifier's and the mechanics' path between the samples); 8000 is the rate
         measured on the rig (see :mod:`.recordings`). Default: one step per sample.
+    threads : int, optional
+        Worker threads for the independent evaluations (default 2, or the environment variable
+        ``PIEZO_FMU_DIAGNOSE_THREADS``); one costs less CPU where the cores are busy anyway. The
+        result does not depend on it.
 
     Returns
     -------
@@ -62,7 +66,7 @@ def diagnose(recordings, model=None, out=None, *, force=False, columns=None, sca
         check_outputs(out, force)
     raw = load_recordings(recordings, columns, scale)
     base = load_model(model)
-    diag = analyse(raw, base, say=say, time_budget_s=time_budget_s, replay_rate=replay_rate)
+    diag = analyse(raw, base, say=say, time_budget_s=time_budget_s, replay_rate=replay_rate, threads=threads)
     if out is not None:
         t0 = time.perf_counter()
         write_outputs(diag, out, force=force, say=say, figures=figures)

@@ -35,11 +35,10 @@ from functools import lru_cache
 import numpy as np
 from scipy.signal import lfilter, ss2tf, tf2sos
 
-from ..core import plant
-from ..core.compiled import jit
-from ..core.linear import TINY, discretize, tf2ss
+from ..core.linear import discretize, tf2ss
 from ..core.plant import drift_curvature, mechanics_tf, mode_tf, series_tf
 from ..core.preisach import kp_relax, kp_step, kp_table
+from .kernels import kernels
 from .model_io import Device, Params, Recording, device_from_model, model_from_params, params_from_model
 
 __all__ = [
@@ -60,191 +59,6 @@ __all__ = [
 ]
 
 
-# -- compiled kernels ---------------------------------------------------------------------------
-
-# The filters' states are flushed to zero at the end of every BLOCK samples where their magnitude
-# is below TINY. A filter whose input has come back to an exact zero (a column of a design before
-# its operator first moves, a chain settled at its start) decays into subnormal doubles and, with
-# their coarse rounding, can stay there in a limit cycle for the rest of the record; on an Intel
-# Xeon each operation on a subnormal costs some hundred cycles (on the AMD EPYC of the earlier
-# stops far less): a 39-row design of rig-d14-095 took 36 ns per sample and row against 12 ns on
-# random input, and its subnormal outputs slowed the Gram products after it. 1e-290 is below
-# anything a signal in these units can mean and above where a product with a filter coefficient
-# turns subnormal. Everything else is scipy's sosfilt to the bit (tests/test_diagnose.py). The
-# core's units use the same threshold (core.linear.TINY), flushed every step.
-BLOCK = 64
-
-@lru_cache(maxsize=1)
-def _kernels():
-    amp_step = jit(plant.amp_step, nogil=True)
-
-    @jit(nogil=True)
-    def amp_run(uc, nd, k_amp, tau, slew, u_min, u_max, h, tau2, out):
-        # the core's actuator_step up to ua (delay line, input stage, output stage)
-        decay = math.exp(-h / tau)
-        d2 = math.exp(-h / tau2) if tau2 > 0.0 else 0.0
-        m2 = (tau2 / h) * (1.0 - d2) if tau2 > 0.0 else 0.0
-        ua = 0.0
-        y = 0.0
-        out[0] = 0.0
-        for k in range(uc.size - 1):
-            c = uc[k - nd] if k >= nd else 0.0
-            if tau2 > 0.0:
-                e2 = y - c
-                y = c + e2 * d2
-                c = c + e2 * m2
-            target = k_amp * c
-            if target < u_min:
-                target = u_min
-            elif target > u_max:
-                target = u_max
-            ua = amp_step(ua, target, tau, slew, h, decay)
-            out[k + 1] = ua
-        return out
-
-    @jit(nogil=True, inline="always")
-    def play(z, v, r):
-        # one play operator (threshold r) moved by the input v: the rule of core.hysteresis.pi_step
-        lo = v - r
-        if z < lo:
-            return lo
-        return min(z, v + r)
-
-    @jit(nogil=True)
-    def play_run(v, r, z, z0):
-        # the operators are independent: one pass per operator keeps the writes contiguous
-        for i in range(r.size):
-            ri = r[i]
-            zi = z0[i]
-            row = z[i]
-            for k in range(v.size):
-                zi = play(zi, v[k], ri)
-                row[k] = zi
-        return z
-
-    @jit(nogil=True)
-    def pi_run(v, r, w, y_inv, out, z0):
-        # the weighted sum of the operators (and the strain saturation) without storing them
-        out[:] = 0.0
-        for i in range(r.size):
-            ri = r[i]
-            wi = w[i]
-            zi = z0[i]
-            for k in range(v.size):
-                zi = play(zi, v[k], ri)
-                out[k] += wi * zi
-        if y_inv > 0.0:
-            for k in range(v.size):
-                out[k] = out[k] / (1.0 + abs(out[k]) * y_inv)
-        return out
-
-    @jit(nogil=True)
-    def cell_run(v, up, down, width, s0, ref, mu, out):
-        # each KP cell on its own (the rule of core.preisach.kp_step), counted from its relaxed
-        # state: its states into out[i], or (mu given) its weighted states summed into out[0]
-        summed = mu.size > 0
-        for i in range(up.size):
-            a = up[i]
-            b = down[i]
-            w = width[i]
-            s = s0[i]
-            r = ref[i]
-            row = out[0] if summed else out[i]
-            m = mu[i] if summed else 0.0
-            for k in range(v.size):
-                lo = min(max(2.0 * (v[k] - a) / w + 1.0, -1.0), 1.0)
-                hi = min(max(2.0 * (v[k] - b) / w - 1.0, -1.0), 1.0)
-                if s < lo:
-                    s = lo
-                elif s > hi:
-                    s = hi
-                if summed:
-                    row[k] += m * (s - r)
-                else:
-                    row[k] = s - r
-        return out
-
-    @jit(nogil=True, inline="always")
-    def section(sos, s):
-        # one second-order section's coefficients [b0 b1 b2 1 a1 a2]: b0, b1, b2, a1, a2
-        return sos[s, 0], sos[s, 1], sos[s, 2], sos[s, 4], sos[s, 5]
-
-    @jit(nogil=True, inline="always")
-    def flush(v):
-        # a filter state below TINY is zero (see TINY)
-        return v if abs(v) >= TINY else 0.0
-
-    @jit(nogil=True)
-    def sos_run(sos, x, gain, c0, dc, out):
-        # scipy's sosfilt recursion (transposed direct form II, from rest) on every row of x, with
-        # the states flushed at the end of each BLOCK samples (TINY): otherwise bit for bit. With
-        # the chain's ends in the same pass (each the numpy expression's operations): the input
-        # x * gain - c0 (c0 per row, none when empty), the output y + dc * c0 (dc per sample, or
-        # one value)
-        n, m = x.shape
-        ns = sos.shape[0]
-        settled = c0.size > 0
-        dstep = 1 if dc.size > 1 else 0
-        if n == 1:
-            # one row (a prediction, not a design): section after section over the whole row, the
-            # state in registers (a row's recursion waits on each multiply-add; nothing to overlap)
-            for k in range(m):
-                out[0, k] = x[0, k] * gain - c0[0] if settled else x[0, k] * gain
-            for s in range(ns):
-                b0, b1, b2, a1, a2 = section(sos, s)
-                s1 = 0.0
-                s2 = 0.0
-                for k in range(m):
-                    xi = out[0, k]
-                    yi = b0 * xi + s1
-                    s1 = b1 * xi - a1 * yi + s2
-                    s2 = b2 * xi - a2 * yi
-                    out[0, k] = yi
-                    if k % BLOCK == BLOCK - 1:
-                        s1 = flush(s1)
-                        s2 = flush(s2)
-            if settled:
-                for k in range(m):
-                    out[0, k] = out[0, k] + dc[k * dstep] * c0[0]
-            return out
-        # a design (many rows): BLOCK samples of every row at a time in a buffer that stays in the
-        # cache, the rows side by side (their recursions are independent: the loop over them
-        # vectorises while each waits on its own multiply-adds)
-        z1 = np.zeros((ns, n))
-        z2 = np.zeros((ns, n))
-        buf = np.empty((BLOCK, n))
-        for k0 in range(0, m, BLOCK):
-            nb = min(BLOCK, m - k0)
-            for i in range(n):
-                for j in range(nb):
-                    buf[j, i] = x[i, k0 + j] * gain - c0[i] if settled else x[i, k0 + j] * gain
-            for s in range(ns):
-                b0, b1, b2, a1, a2 = section(sos, s)
-                p1 = z1[s]
-                p2 = z2[s]
-                for j in range(nb):
-                    row = buf[j]
-                    for i in range(n):
-                        xi = row[i]
-                        yi = b0 * xi + p1[i]
-                        p1[i] = b1 * xi - a1 * yi + p2[i]
-                        p2[i] = b2 * xi - a2 * yi
-                        row[i] = yi
-                for i in range(n):
-                    p1[i] = flush(p1[i])
-                    p2[i] = flush(p2[i])
-            for i in range(n):
-                if settled:
-                    for j in range(nb):
-                        out[i, k0 + j] = buf[j, i] + dc[(k0 + j) * dstep] * c0[i]
-                else:
-                    for j in range(nb):
-                        out[i, k0 + j] = buf[j, i]
-        return out
-
-    return amp_run, play_run, pi_run, cell_run, sos_run
-
-
 # -- pieces of the replay -------------------------------------------------------------------------
 
 def at_samples(rec: Recording, a: np.ndarray) -> np.ndarray:
@@ -262,7 +76,7 @@ def at_samples(rec: Recording, a: np.ndarray) -> np.ndarray:
 
 def amplifier_output(rec: Recording, dev: Device, p: Params) -> np.ndarray:
     """Stack voltage ``ua`` at every internal step (step 0: the device at rest, ua = 0)."""
-    amp_run = _kernels()[0]
+    amp_run = kernels()[0]
     u = rec.u if rec.oversample == 1 else np.repeat(rec.u, rec.oversample)
     nd = int(round(p.delay / rec.h)) if p.delay > 0 else 0
     out = np.empty(u.size)
@@ -299,7 +113,7 @@ def operators(ua: np.ndarray, p: Params) -> np.ndarray:
     """Play-operator outputs ``(n, N)`` for the stack voltage ``ua``, from :func:`initial_state`,
     followed by the KP cells' states counted from their relaxed state (``(n + m, N)``, or with the
     cells held their weighted sum, ``(n + 1, N)``: the columns of :meth:`Params.all_weights`)."""
-    kern = _kernels()
+    kern = kernels()
     r = np.asarray(p.thresholds, dtype=float)
     z = np.empty((r.size + p.n_cell_cols, ua.size))
     v = ua / p.u_norm
@@ -475,7 +289,7 @@ def sos_filter(sos, cols, gain=1.0, c0=None, dc=1.0):
     rows = x.reshape(-1, x.shape[-1])
     out = np.empty_like(rows)
     start = np.empty(0) if c0 is None else np.ascontiguousarray(c0, dtype=float).reshape(-1)
-    _kernels()[4](np.ascontiguousarray(sos, dtype=float), rows, float(gain), start,
+    kernels()[4](np.ascontiguousarray(sos, dtype=float), rows, float(gain), start,
                   np.atleast_1d(np.asarray(dc, dtype=float)), out)
     return out.reshape(x.shape)
 
@@ -492,7 +306,10 @@ def shift(a, n):
 
 
 def drift(t, p: Params):
-    """The displacement reading's drift [um]: offset plus :func:`trend`."""
+    """The displacement reading's drift [um]: offset plus :func:`trend` (the offset alone, a number,
+    when there is no trend: the same sums, without the curvature's exponentials at every sample)."""
+    if not p.rate and not p.curv:
+        return p.off_x
     return p.off_x + trend(t, p)
 
 
@@ -538,7 +355,7 @@ def stroke(rec: Recording, dev: Device, p: Params, rp: Replay | None = None):
         hx = p.all_weights() @ rp.z
         return saturate(hx, p.y_sat)
     ua = amplifier_output(rec, dev, p)
-    kern = _kernels()
+    kern = kernels()
     y_inv = 1.0 / p.y_sat if math.isfinite(p.y_sat) else 0.0
     v = ua / p.u_norm
     if not p.n_cells:

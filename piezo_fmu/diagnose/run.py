@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import UserError
 from ..model import Model, load_model
-from . import locate
+from . import locate, workers
 from .blas import single_thread
 from .engine import Device, Params, device_from_model, params_from_model, predict
 from .fit import Fitter, Structure, strip
@@ -79,7 +79,7 @@ DIVERGED = 100.0
 
 
 def analyse(raw, model: Model | None = None, say=None, max_rounds=5, time_budget_s=TIME_BUDGET_S,
-            replay_rate=None) -> Diagnosis:
+            replay_rate=None, threads=None) -> Diagnosis:
     """Diagnose recordings in memory (``raw``: dicts name, time, u, x, us) against ``model``.
 
     ``replay_rate`` [Hz]: replay a recording sampled slower with internal steps up to this rate
@@ -88,8 +88,12 @@ def analyse(raw, model: Model | None = None, say=None, max_rounds=5, time_budget
     ``time_budget_s``: after the work of this many seconds on the reference machine no further
     candidate search is started (what was found stays; ``diagnosis.json`` says so under
     ``rejected``); ``None`` for no limit. Counted as work (``WORK_PER_S``), not time: the result
-    does not depend on the machine or its load."""
-    with single_thread(), kept():
+    does not depend on the machine or its load.
+
+    ``threads``: worker threads for the independent evaluations (:mod:`.workers`; default two, or
+    the environment's ``PIEZO_FMU_DIAGNOSE_THREADS``); the result does not depend on it."""
+    with single_thread(), kept(), workers.limit(threads):
+        workers.thread_count()      # a bad PIEZO_FMU_DIAGNOSE_THREADS is an error before any work
         return _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate)
 
 
