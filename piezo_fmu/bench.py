@@ -29,7 +29,8 @@
    sensor between stack and push rod, and a further mode to find), two mechanisms (creep and a
    delay) and a long record with creep, and (full size) recordings of the independent rig as drawn
    (:data:`DIAGNOSE_RIG_CASES`); ``diagnose_s`` is the slowest (target < 60 s),
-   ``diagnose_median_s`` the median, ``diagnose_cases`` each case's seconds and what it named.
+   ``diagnose_median_s`` the median, ``diagnose_cases`` each case's seconds and what it named,
+   ``diagnose_threads`` the worker threads each used (:mod:`piezo_fmu.diagnose.workers`).
 6. ``write_csv_s``, ``write_parquet_s``: writing the 1e6 rows of a 100 s run recorded every 1e-4 s
    (the command line's default) through :class:`piezo_fmu.results.RunWriter` (target < 5 s).
 7. The FMUs' native runtime (:func:`piezo_fmu.bench_runtime.runtime_figures`), in one run:
@@ -262,8 +263,11 @@ def _diagnose_figures(model_path, seconds, fs, workdir, rig_cases=True):
         diag = diagnose([str(rec)], model_path, Path(workdir) / "diagnosis", force=True)
         cases[name] = {"seconds": time.perf_counter() - t0, "truth": list(effects),
                        "named": list(diag.result["final"]["effects"]), "samples": int(case.t.size)}
+    from .diagnose.workers import thread_count
+
     secs = sorted(c["seconds"] for c in cases.values())
-    return {"diagnose_s": secs[-1], "diagnose_median_s": secs[len(secs) // 2], "diagnose_cases": cases}
+    return {"diagnose_s": secs[-1], "diagnose_median_s": secs[len(secs) // 2], "diagnose_cases": cases,
+            "diagnose_threads": thread_count()}
 
 
 def _write_figures(rows, reps, workdir):
@@ -442,7 +446,8 @@ def format_figures(r) -> str:
             ("diagnose, hard cases", f"slowest {r['diagnose_s']:.1f} s, median {r['diagnose_median_s']:.1f} s "
                                      f"({_diagnose_cases_text(r)}) "
                                      f"for {r['diagnose_recording']['seconds']:g} s at "
-                                     f"{r['diagnose_recording']['rate_hz']:g} Hz, 2 channels (target < 60 s)"),
+                                     f"{r['diagnose_recording']['rate_hz']:g} Hz, 2 channels, "
+                                     f"{r.get('diagnose_threads', 2)} threads (target < 60 s)"),
             ("sweep on dask, 1 / 2 workers", f"{r['sweep_runs_per_s_1']:.0f} / {r['sweep_runs_per_s_2']:.0f} runs/s "
              f"({r['sweep_run_ms']:.1f} ms a run), scaling {100 * r['sweep_scaling_efficiency']:.0f} % (goal >= 80 "
              f"%; 2 plain processes: {100 * r['sweep_machine_scaling_efficiency']:.0f} %), overhead "

@@ -36,6 +36,9 @@ def test_bench_tiny_writes_every_key(tmp_path, capsys):
                         r["cosim_us_per_step"] * 1e-6 / 1e-4 * r["monolithic_samples_per_s"] * 1e-5)
     assert r["monolithic_control_step_s"] == 1e-4     # the controller sampled as in the co-simulation
     assert r["diagnose_recording"]["channels"] == ["x", "us"]
+    from piezo_fmu.diagnose.workers import thread_count
+
+    assert r["diagnose_threads"] == thread_count()      # (one in the suite's xdist workers: conftest)
     assert r["machine"]["cores"] >= 1
     # the native runtime's figures: every key there; the C host's in a checkout with a compiler
     for key in RUNTIME_KEYS:

@@ -194,16 +194,41 @@ def test_the_compiled_sos_filter_is_scipys_sosfilt_to_the_bit():
     assert np.array_equal(sos_filter(sos, x, gain), sosfilt(sos, x * gain, axis=-1))
     assert not np.array_equal(sos_filter(sos, x, gain, c0, 1.7), sosfilt(sos, x * gain, axis=-1))
     # every path of the kernel (a row alone with one, two or more sections; rows four at a time
-    # and one by one; many rows side by side, DESIGN_ROWS) gives every row scipy's numbers
-    from piezo_fmu.diagnose.kernels import DESIGN_ROWS
-
-    y = rng.normal(size=(DESIGN_ROWS + 3, 1001)).cumsum(axis=1)
+    # and one by one; rows side by side) gives every row scipy's numbers
+    y = rng.normal(size=(11, 1001)).cumsum(axis=1)
     for ns in (1, 2, 3, 5):
-        for n in (1, 2, 4, 6, DESIGN_ROWS, DESIGN_ROWS + 3):
+        for n in (1, 2, 4, 6, 8, 11):
             c0 = y[:n, :1] * 0.37
             want = sosfilt(sos[:ns], y[:n] * 0.37 - c0, axis=-1) + dc[:1001] * c0
             assert np.array_equal(sos_filter(sos[:ns], y[:n], 0.37, c0, dc[:1001]), want), (ns, n)
             assert np.array_equal(sos_filter(sos[:ns], y[:n]), sosfilt(sos[:ns], y[:n], axis=-1)), (ns, n)
+
+
+def test_the_compiled_operators_are_the_play_rule_summed_in_order():
+    # the engine's play operators run several side by side: each is still the play rule sample
+    # after sample, and the weighted sum adds them one after another, as the core does (to the bit)
+    from piezo_fmu.diagnose.kernels import kernels
+
+    _, play_run, pi_run, _, _ = kernels()
+    rng = np.random.default_rng(3)
+    v = np.cumsum(rng.normal(scale=0.05, size=400))
+    for n in (1, 3, 4, 5, 9):
+        r = np.linspace(0.0, 0.8, n)
+        w = rng.uniform(0.1, 1.0, n)
+        z0 = rng.uniform(-0.2, 0.2, n)
+        ref = np.empty((n, v.size))
+        for i in range(n):
+            zi = z0[i]
+            for k in range(v.size):
+                zi = max(v[k] - r[i], min(zi, v[k] + r[i]))
+                ref[i, k] = zi
+        total = np.zeros(v.size)
+        for i in range(n):
+            total = total + w[i] * ref[i]
+        assert np.array_equal(play_run(v, r, np.empty((n, v.size)), z0), ref), n
+        assert np.array_equal(pi_run(v, r, w, 0.0, np.empty(v.size), z0), total), n
+        sat = pi_run(v, r, w, 0.5, np.empty(v.size), z0)
+        assert np.array_equal(sat, total / (1.0 + np.abs(total) * 0.5)), n
 
 
 def test_the_sos_filter_flushes_states_that_decay_into_subnormal_numbers():
@@ -215,7 +240,7 @@ def test_the_sos_filter_flushes_states_that_decay_into_subnormal_numbers():
 
     from piezo_fmu.core.linear import TINY
     from piezo_fmu.diagnose.engine import sos_filter
-    from piezo_fmu.diagnose.kernels import BLOCK, DESIGN_ROWS
+    from piezo_fmu.diagnose.kernels import BLOCK
 
     sos = np.array([[0.02, 0.01, 0.0, 1.0, -1.0, 0.36]])         # poles at radius 0.6
     x = np.zeros((6, 40 * BLOCK))
@@ -230,9 +255,11 @@ def test_the_sos_filter_flushes_states_that_decay_into_subnormal_numbers():
     assert not np.any((got != 0.0) & (np.abs(got) < 2.2250738585072014e-308))
     rows = np.vstack([sos_filter(sos, x[i]) for i in range(x.shape[0])])
     assert np.array_equal(rows, got)
-    many = np.vstack([x, x])                                     # (side by side: DESIGN_ROWS)
-    assert many.shape[0] >= DESIGN_ROWS
-    assert np.array_equal(sos_filter(sos, many), np.vstack([got, got]))
+    two = np.vstack([sos, sos])                                  # (two sections: four rows at a time)
+    assert np.array_equal(sos_filter(two, x), np.vstack([sos_filter(two, x[i]) for i in range(x.shape[0])]))
+    three = np.vstack([sos, sos, sos])                           # (three: side by side)
+    assert np.array_equal(sos_filter(three, x), np.vstack([sos_filter(three, x[i]) for i in range(x.shape[0])]))
+    assert np.all(sos_filter(three, x)[:, -BLOCK:] == 0.0)
 
 
 @pytest.mark.parametrize("settled", [False, True])

@@ -17,7 +17,7 @@ from ..core import plant
 from ..core.compiled import jit
 from ..core.linear import TINY
 
-__all__ = ["BLOCK", "DESIGN_ROWS", "kernels"]
+__all__ = ["BLOCK", "kernels"]
 
 # The filters' states are flushed to zero at the end of every BLOCK samples where their magnitude
 # is below TINY. A filter whose input has come back to an exact zero (a column of a design before
@@ -30,12 +30,11 @@ __all__ = ["BLOCK", "DESIGN_ROWS", "kernels"]
 # turns subnormal. Everything else is scipy's sosfilt to the bit (tests/test_diagnose.py). The
 # core's units use the same threshold (core.linear.TINY), flushed every step.
 BLOCK = 64
-# from this many rows on a design's rows are filtered side by side in one buffer (the loop over
-# them vectorises), below it four at a time with their states in registers; a row alone is one
-# pass. On the Intel Xeon, ns per sample, row and section (200 k samples; old = side by side for
-# every design, sections one after another for a row): 1 row 1 / 2 sections 5.9 / 5.4 -> 5.1 /
-# 2.7; 4 rows 6.3 / 4.4 -> 4.0 / 3.0; 20 rows 2.6 side by side against 2.8 four at a time
-DESIGN_ROWS = 8
+# Which path a filter takes (sos_run), measured on the Intel Xeon, 200 k samples, ns per sample, row
+# and section, before -> after (before: rows side by side in a buffer for every design, a row alone
+# section after section): one section 1 row 5.4-5.6 -> 4.4, 4 rows 3.9 -> 2.1, 20 rows 2.5 -> 2.1;
+# two sections 1 row 4.7-4.9 -> 2.8, 4 rows 2.8-3.2 -> 1.8-2.0, 8-16 rows 2.6 either way, 24-40 rows
+# 4.1-4.7 -> 3.4; three sections side by side stay (5 rows 2.1, four at a time would be 4.9)
 
 @lru_cache(maxsize=1)
 def kernels():
@@ -77,27 +76,60 @@ def kernels():
 
     @jit(nogil=True)
     def play_run(v, r, z, z0):
-        # the operators are independent: one pass per operator keeps the writes contiguous
-        for i in range(r.size):
+        # the operators are independent: four at a time (their recursions, each waiting on its
+        # comparisons, overlap), each row's writes contiguous
+        n = r.size
+        i = 0
+        while i + 4 <= n:
+            ra, rb, rc, rd = r[i], r[i + 1], r[i + 2], r[i + 3]
+            za, zb, zc, zd = z0[i], z0[i + 1], z0[i + 2], z0[i + 3]
+            for k in range(v.size):
+                vk = v[k]
+                za = play(za, vk, ra)
+                zb = play(zb, vk, rb)
+                zc = play(zc, vk, rc)
+                zd = play(zd, vk, rd)
+                z[i, k] = za
+                z[i + 1, k] = zb
+                z[i + 2, k] = zc
+                z[i + 3, k] = zd
+            i += 4
+        while i < n:
             ri = r[i]
             zi = z0[i]
-            row = z[i]
             for k in range(v.size):
                 zi = play(zi, v[k], ri)
-                row[k] = zi
+                z[i, k] = zi
+            i += 1
         return z
 
     @jit(nogil=True)
     def pi_run(v, r, w, y_inv, out, z0):
-        # the weighted sum of the operators (and the strain saturation) without storing them
+        # the weighted sum of the operators (and the strain saturation) without storing them: four
+        # operators at a time, added in their order (the sum of one operator after another)
         out[:] = 0.0
-        for i in range(r.size):
+        n = r.size
+        i = 0
+        while i + 4 <= n:
+            ra, rb, rc, rd = r[i], r[i + 1], r[i + 2], r[i + 3]
+            wa, wb, wc, wd = w[i], w[i + 1], w[i + 2], w[i + 3]
+            za, zb, zc, zd = z0[i], z0[i + 1], z0[i + 2], z0[i + 3]
+            for k in range(v.size):
+                vk = v[k]
+                za = play(za, vk, ra)
+                zb = play(zb, vk, rb)
+                zc = play(zc, vk, rc)
+                zd = play(zd, vk, rd)
+                out[k] = out[k] + wa * za + wb * zb + wc * zc + wd * zd
+            i += 4
+        while i < n:
             ri = r[i]
             wi = w[i]
             zi = z0[i]
             for k in range(v.size):
                 zi = play(zi, v[k], ri)
                 out[k] += wi * zi
+            i += 1
         if y_inv > 0.0:
             for k in range(v.size):
                 out[k] = out[k] / (1.0 + abs(out[k]) * y_inv)
@@ -139,6 +171,12 @@ def kernels():
         # a filter state below TINY is zero (see TINY)
         return v if abs(v) >= TINY else 0.0
 
+    @jit(nogil=True, inline="always")
+    def step(xi, s1, s2, b0, b1, b2, a1, a2):
+        # one sample through one section (transposed direct form II): output, new states
+        yi = b0 * xi + s1
+        return yi, b1 * xi - a1 * yi + s2, b2 * xi - a2 * yi
+
     @jit(nogil=True)
     def sos_row(sos, x, gain, c0, dc, out, i, settled, dstep):
         # one row, BLOCK samples at a time, the states in registers. A row's recursion waits on
@@ -148,119 +186,77 @@ def kernels():
         ns = sos.shape[0]
         ci = c0[i] if settled else 0.0
         b0, b1, b2, a1, a2 = section(sos, 0)
-        s1 = 0.0
-        s2 = 0.0
-        if ns == 1:
+        e0, e1, e2, d1, d2 = section(sos, ns - 1)
+        s1 = s2 = t1 = t2 = 0.0
+        if ns <= 2:
             for k0 in range(0, m, BLOCK):
                 for k in range(k0, min(k0 + BLOCK, m)):
-                    xi = x[i, k] * gain - ci if settled else x[i, k] * gain
-                    yi = b0 * xi + s1
-                    s1 = b1 * xi - a1 * yi + s2
-                    s2 = b2 * xi - a2 * yi
+                    yi, s1, s2 = step(x[i, k] * gain - ci if settled else x[i, k] * gain, s1, s2,
+                                      b0, b1, b2, a1, a2)
+                    if ns == 2:
+                        yi, t1, t2 = step(yi, t1, t2, e0, e1, e2, d1, d2)
                     out[i, k] = yi + dc[k * dstep] * ci if settled else yi
-                s1 = flush(s1)
-                s2 = flush(s2)
-            return
-        if ns == 2:
-            e0, e1, e2, d1, d2 = section(sos, 1)
-            t1 = 0.0
-            t2 = 0.0
-            for k0 in range(0, m, BLOCK):
-                for k in range(k0, min(k0 + BLOCK, m)):
-                    xi = x[i, k] * gain - ci if settled else x[i, k] * gain
-                    yi = b0 * xi + s1
-                    s1 = b1 * xi - a1 * yi + s2
-                    s2 = b2 * xi - a2 * yi
-                    zi = e0 * yi + t1
-                    t1 = e1 * yi - d1 * zi + t2
-                    t2 = e2 * yi - d2 * zi
-                    out[i, k] = zi + dc[k * dstep] * ci if settled else zi
-                s1 = flush(s1)
-                s2 = flush(s2)
-                t1 = flush(t1)
-                t2 = flush(t2)
+                s1, s2, t1, t2 = flush(s1), flush(s2), flush(t1), flush(t2)
             return
         for k in range(m):
             out[i, k] = x[i, k] * gain - ci if settled else x[i, k] * gain
         for s in range(ns):
             b0, b1, b2, a1, a2 = section(sos, s)
-            s1 = 0.0
-            s2 = 0.0
+            s1 = s2 = 0.0
             for k0 in range(0, m, BLOCK):
                 for k in range(k0, min(k0 + BLOCK, m)):
-                    xi = out[i, k]
-                    yi = b0 * xi + s1
-                    s1 = b1 * xi - a1 * yi + s2
-                    s2 = b2 * xi - a2 * yi
-                    out[i, k] = yi
-                s1 = flush(s1)
-                s2 = flush(s2)
+                    out[i, k], s1, s2 = step(out[i, k], s1, s2, b0, b1, b2, a1, a2)
+                s1, s2 = flush(s1), flush(s2)
         if settled:
             for k in range(m):
                 out[i, k] = out[i, k] + dc[k * dstep] * ci
 
     @jit(nogil=True)
     def sos_four(sos, x, gain, c0, dc, out, i, settled, dstep):
-        # rows i..i+3 side by side, BLOCK samples at a time (in the cache), section after section:
-        # four independent recursions overlap, their states in registers
+        # rows i..i+3 of a filter of one or two sections in one pass, BLOCK samples at a time: four
+        # (eight) independent recursions overlap, their states in registers
         m = x.shape[1]
-        ns = sos.shape[0]
-        st = np.zeros((ns, 8))
+        two = sos.shape[0] == 2
+        b0, b1, b2, a1, a2 = section(sos, 0)
+        e0, e1, e2, d1, d2 = section(sos, sos.shape[0] - 1)
         ca = c0[i] if settled else 0.0
         cb = c0[i + 1] if settled else 0.0
         cc = c0[i + 2] if settled else 0.0
         cd = c0[i + 3] if settled else 0.0
-        ra = out[i]
-        rb = out[i + 1]
-        rc = out[i + 2]
-        rd = out[i + 3]
+        pa = qa = pb = qb = pc = qc = pd = qd = 0.0
+        ua = va = ub = vb = uc = vc = ud = vd = 0.0
         for k0 in range(0, m, BLOCK):
-            ke = min(k0 + BLOCK, m)
-            for k in range(k0, ke):
+            for k in range(k0, min(k0 + BLOCK, m)):
                 if settled:
-                    ra[k] = x[i, k] * gain - ca
-                    rb[k] = x[i + 1, k] * gain - cb
-                    rc[k] = x[i + 2, k] * gain - cc
-                    rd[k] = x[i + 3, k] * gain - cd
+                    ya, pa, qa = step(x[i, k] * gain - ca, pa, qa, b0, b1, b2, a1, a2)
+                    yb, pb, qb = step(x[i + 1, k] * gain - cb, pb, qb, b0, b1, b2, a1, a2)
+                    yc, pc, qc = step(x[i + 2, k] * gain - cc, pc, qc, b0, b1, b2, a1, a2)
+                    yd, pd, qd = step(x[i + 3, k] * gain - cd, pd, qd, b0, b1, b2, a1, a2)
                 else:
-                    ra[k] = x[i, k] * gain
-                    rb[k] = x[i + 1, k] * gain
-                    rc[k] = x[i + 2, k] * gain
-                    rd[k] = x[i + 3, k] * gain
-            for s in range(ns):
-                b0, b1, b2, a1, a2 = section(sos, s)
-                pa, qa, pb, qb, pc, qc, pd, qd = st[s, 0], st[s, 1], st[s, 2], st[s, 3], st[s, 4], st[s, 5], \
-                    st[s, 6], st[s, 7]
-                for k in range(k0, ke):
-                    xa = ra[k]
-                    xb = rb[k]
-                    xc = rc[k]
-                    xd = rd[k]
-                    ya = b0 * xa + pa
-                    yb = b0 * xb + pb
-                    yc = b0 * xc + pc
-                    yd = b0 * xd + pd
-                    pa = b1 * xa - a1 * ya + qa
-                    pb = b1 * xb - a1 * yb + qb
-                    pc = b1 * xc - a1 * yc + qc
-                    pd = b1 * xd - a1 * yd + qd
-                    qa = b2 * xa - a2 * ya
-                    qb = b2 * xb - a2 * yb
-                    qc = b2 * xc - a2 * yc
-                    qd = b2 * xd - a2 * yd
-                    ra[k] = ya
-                    rb[k] = yb
-                    rc[k] = yc
-                    rd[k] = yd
-                st[s, 0], st[s, 1], st[s, 2], st[s, 3] = flush(pa), flush(qa), flush(pb), flush(qb)
-                st[s, 4], st[s, 5], st[s, 6], st[s, 7] = flush(pc), flush(qc), flush(pd), flush(qd)
-            if settled:
-                for k in range(k0, ke):
+                    ya, pa, qa = step(x[i, k] * gain, pa, qa, b0, b1, b2, a1, a2)
+                    yb, pb, qb = step(x[i + 1, k] * gain, pb, qb, b0, b1, b2, a1, a2)
+                    yc, pc, qc = step(x[i + 2, k] * gain, pc, qc, b0, b1, b2, a1, a2)
+                    yd, pd, qd = step(x[i + 3, k] * gain, pd, qd, b0, b1, b2, a1, a2)
+                if two:
+                    ya, ua, va = step(ya, ua, va, e0, e1, e2, d1, d2)
+                    yb, ub, vb = step(yb, ub, vb, e0, e1, e2, d1, d2)
+                    yc, uc, vc = step(yc, uc, vc, e0, e1, e2, d1, d2)
+                    yd, ud, vd = step(yd, ud, vd, e0, e1, e2, d1, d2)
+                if settled:
                     d = dc[k * dstep]
-                    ra[k] = ra[k] + d * ca
-                    rb[k] = rb[k] + d * cb
-                    rc[k] = rc[k] + d * cc
-                    rd[k] = rd[k] + d * cd
+                    out[i, k] = ya + d * ca
+                    out[i + 1, k] = yb + d * cb
+                    out[i + 2, k] = yc + d * cc
+                    out[i + 3, k] = yd + d * cd
+                else:
+                    out[i, k] = ya
+                    out[i + 1, k] = yb
+                    out[i + 2, k] = yc
+                    out[i + 3, k] = yd
+            pa, qa, pb, qb, pc, qc, pd, qd = (flush(pa), flush(qa), flush(pb), flush(qb), flush(pc), flush(qc),
+                                              flush(pd), flush(qd))
+            ua, va, ub, vb, uc, vc, ud, vd = (flush(ua), flush(va), flush(ub), flush(vb), flush(uc), flush(vc),
+                                              flush(ud), flush(vd))
 
     @jit(nogil=True)
     def sos_design(sos, x, gain, c0, dc, out, settled, dstep):
@@ -306,19 +302,21 @@ def kernels():
         # the states flushed at the end of each BLOCK samples (TINY): otherwise bit for bit. With
         # the chain's ends in the same pass (each the numpy expression's operations): the input
         # x * gain - c0 (c0 per row, none when empty), the output y + dc * c0 (dc per sample, or
-        # one value). A row alone (a prediction) in one pass, a few rows four at a time, many
-        # side by side (DESIGN_ROWS, measured): the same operations on each row, so a row gives
-        # the same numbers alone or in a design
+        # one value). With one or two sections (most chains) rows four at a time, the rest one by
+        # one, each in one pass; with more, a row alone in passes section by section, several side
+        # by side. The same operations on each row: a row gives the same numbers alone or in a
+        # design
         n = x.shape[0]
         settled = c0.size > 0
         dstep = 1 if dc.size > 1 else 0
-        if n >= DESIGN_ROWS:
+        i = 0
+        if sos.shape[0] > 2 and n > 1:
             sos_design(sos, x, gain, c0, dc, out, settled, dstep)
             return out
-        i = 0
-        while i + 4 <= n:
-            sos_four(sos, x, gain, c0, dc, out, i, settled, dstep)
-            i += 4
+        if sos.shape[0] <= 2:
+            while i + 4 <= n:
+                sos_four(sos, x, gain, c0, dc, out, i, settled, dstep)
+                i += 4
         while i < n:
             sos_row(sos, x, gain, c0, dc, out, i, settled, dstep)
             i += 1
