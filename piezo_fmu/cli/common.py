@@ -38,15 +38,15 @@ def positive(name):
     return parse
 
 
-def count(name):
-    """argparse type: a whole number >= 1 (the message names the option)."""
+def count(name, least=1):
+    """argparse type: a whole number >= ``least`` (the message names the option)."""
     def parse(text):
         try:
             v = int(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{name} must be a whole number, got {text!r}") from None
-        if v < 1:
-            raise argparse.ArgumentTypeError(f"{name} must be at least 1, got {text}")
+        if v < least:
+            raise argparse.ArgumentTypeError(f"{name} must be at least {least}, got {text}")
         return v
     return parse
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .common import progress_for, say
+from .common import count, progress_for, say
 
 __all__ = ["register"]
 
@@ -37,16 +37,6 @@ examples:
   piezo-fmu sweep spec.toml --out dbg/ --workers 0
         serially in this process, without dask (debugging)
 """
-
-
-def _workers(text):
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--workers must be a whole number, got {text!r}") from None
-    if n < 0:
-        raise argparse.ArgumentTypeError(f"--workers must be >= 0, got {n}")
-    return n
 
 
 def cmd_sweep(args):
@@ -88,7 +78,7 @@ def register(sub):
                    help="output folder: results.parquet, sweep.json, report.html, figures/")
     p.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="a running dask scheduler, tcp://HOST:PORT (default: a local cluster)")
-    p.add_argument("--workers", metavar="N", type=_workers, default=None,
+    p.add_argument("--workers", metavar="N", type=count("--workers", least=0), default=None,
                    help="local cluster size (default: one per core); with --scheduler: wait for N "
                         "workers; 0: serially in this process, without dask")
     p.add_argument("--resume", action="store_true", help="complete an interrupted sweep in DIR")
