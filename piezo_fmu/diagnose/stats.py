@@ -56,11 +56,12 @@ def noise_level(e, fs):
     (smoothed) spectrum there.
 
     The spectrum is the mean over short segments. When the floor it gives reaches
-    :data:`FLOOR_OF_ALL` of the residual's own rms, the upper half holds as much as the whole: the residual is noise, or a broad-band
-    misfit fills the spectrum; the floor is then each frequency's median over the segments, which a
-    misfit confined to some of them (pulses at the command's steps) does not reach, and which is
-    the same floor for noise alone (rig-d15-053, a one-sample delay at 407 Hz: the mean's floor
-    0.077 um, above the residual's rms of 0.072 um; the median's 0.018 for a noise of 0.017)."""
+    :data:`FLOOR_OF_ALL` of the residual's own rms, the upper half holds as much as the whole: the
+    residual is noise, or a broad-band misfit fills the spectrum; the floor is then each frequency's
+    median over the segments, which a misfit confined to some of them (pulses at the command's
+    steps) does not reach, and which is the same floor for noise alone (rig-d15-053, a one-sample
+    delay at 407 Hz: the mean's floor 0.077 um, above the residual's rms of 0.072 um; the median's
+    0.018 for a noise of 0.017)."""
     # short segments: many averages make a smooth floor (its resolution does not matter here)
     nper = int(min(512, max(64, 2 ** int(math.log2(max(e.size // 16, 64))))))
     f, p = psd(e, fs, nper)
