@@ -21,15 +21,12 @@ from scipy.signal import welch
 __all__ = ["compare", "improvement_band", "input_xcorr", "noise_std", "psd", "tau_int", "whiteness"]
 
 
-def psd(e, fs, nperseg=None, average="mean"):
-    """One-sided power spectral density of ``e`` [unit^2/Hz] at frequencies ``f`` [Hz] (Welch,
-    Hann windows, half overlap). ``average="median"``: each frequency's median over the segments
-    (scipy's bias correction for it), which a misfit confined to a few segments does not reach."""
+def psd(e, fs, nperseg=None):
     e = np.asarray(e, float)
     n = e.size
     nper = nperseg or int(min(max(64, 2 ** int(math.log2(max(n // 8, 64)))), 8192))
     nper = min(nper, n)
-    f, p = welch(e - np.mean(e), fs=fs, nperseg=nper, detrend="constant", average=average)
+    f, p = welch(e - np.mean(e), fs=fs, nperseg=nper, detrend="constant")
     return f, p
 
 
@@ -39,9 +36,6 @@ def noise_std(e, fs):
 
 
 _AR_GRID = np.round(np.arange(-0.6, 0.6001, 0.05), 2)
-# a noise floor from the segments' mean at this share of the residual's rms or above is re-read
-# from their median (see noise_level)
-FLOOR_OF_ALL = 0.8
 
 
 def noise_level(e, fs):
@@ -53,32 +47,13 @@ def noise_level(e, fs):
     count); ``a`` is kept at 0 unless the colour is clear (the log-spectrum's misfit falls by more
     than its sampling scatter allows). ``sigma`` is then the standard deviation of the AR(1)
     process, its spectrum extrapolated to every frequency but never above the residual's own
-    (smoothed) spectrum there.
-
-    The spectrum is the mean over short segments. When the floor it gives reaches
-    :data:`FLOOR_OF_ALL` of the residual's own rms, the upper half holds as much as the whole: the
-    residual is noise, or a broad-band misfit fills the spectrum; the floor is then each frequency's
-    median over the segments, which a misfit confined to some of them (pulses at the command's
-    steps) does not reach, and which is the same floor for noise alone (rig-d15-053, a one-sample
-    delay at 407 Hz: the mean's floor 0.077 um, above the residual's rms of 0.072 um; the median's
-    0.018 for a noise of 0.017)."""
+    (smoothed) spectrum there."""
     # short segments: many averages make a smooth floor (its resolution does not matter here)
-    nper = int(min(512, max(64, 2 ** int(math.log2(max(e.size // 16, 64))))))
-    f, p = psd(e, fs, nper)
+    f, p = psd(e, fs, int(min(512, max(64, 2 ** int(math.log2(max(e.size // 16, 64)))))))
     sel = (f >= 0.5 * f[-1]) & (f > 0)
     if np.count_nonzero(sel) < 6:
         return float(np.std(np.diff(e)) / math.sqrt(2)), 0.0
-    sigma, a = _floor(f, p, sel, fs, e.size)
-    if sigma >= FLOOR_OF_ALL * float(np.std(e)):
-        f, p = psd(e, fs, nper, average="median")
-        sigma, a = _floor(f, p, sel, fs, e.size)
-    return sigma, a
-
-
-def _floor(f, p, sel, fs, n):
-    """The AR(1) noise floor ``(sigma, a)`` fitted to the spectrum ``p`` at ``f[sel]`` (see
-    :func:`noise_level`); ``n`` samples."""
-    nseg = max(1, 2 * n // max(1, 2 * (f.size - 1)) - 1)
+    nseg = max(1, 2 * e.size // max(1, 2 * (f.size - 1)) - 1)
     dof = 2 * nseg
     corr = dof / sst.chi2.ppf(0.5, dof)            # mean / median of chi2(dof)/dof
     w = 2 * np.pi * f[sel] / fs
