@@ -1695,29 +1695,37 @@ def test_a_loop_beside_a_named_mechanism_must_lie_further_from_the_classical_one
 
 
 def test_a_loop_named_before_another_mechanism_is_judged_again_beside_it(monkeypatch):
-    # rig-d1-145: a current limit on a Bouc-Wen-like device. The first round named a loop shape
+    # rig-d1-145: a current limit on a Bouc-Wen-like device. The first round names a loop shape
     # (47 % explained, 13.5 noise rms from every classical loop): the limit's misfit, which no
-    # candidate yet explained, bent the loop. The second round named the limit. The backward check
-    # measures the loop again with the limit in: 0.66 noise rms from the classical ones, an
-    # ordinary loop difference (its cells stay in as the recalibration's finer loop, not named)
-    # The path to the outcome is chaotic in round-off (stop 61: on an Intel Xeon the active-set solve
-    # of the weights, within 3e-9 of bvls's cost in every one of its 1632 solves on rig-d10-133, led
-    # to the same names by another rule); the rule tested is the one it was set with on bvls's solves,
-    # so the test runs every bounded solve by bvls (the reference solver)
+    # candidate yet explained, bent the loop. The second round names the limit. The backward check
+    # judges the loop again with the limit in, and it goes. Which of the backward check's two tests
+    # removes it is chaotic in round-off, so both are accepted here: on an Intel Xeon (stop 61) the
+    # loop still passed the ordinary test and lay 0.66 noise rms from the classical loops beside the
+    # limit (`loopshape.loop_beside`: an ordinary loop difference, its cells kept as the
+    # recalibration's finer loop); on an AMD EPYC (stop 66) the loop fitted beside the limit made
+    # the held-out x 76 % worse and the ordinary test dropped it. Every bounded solve by bvls (the
+    # reference solver): on the Xeon the active-set solve, within 3e-9 of bvls's cost in every one
+    # of its 1632 solves on rig-d10-133, led to the same names by another path
     from piezo_fmu.diagnose import varpro
     monkeypatch.setattr(varpro, "_active_set", lambda *args, **kwargs: None)
     from piezo_fmu.diagnose.run import analyse
 
     rec, raw = _rig_recording("rig-d1-145")
     assert rec.truth["mechanisms"] == ["amplifier_current_limit"]
-    d = analyse(raw)
+    steps = []
+    d = analyse(raw, say=steps.append)
     res = d.result
+    assert any("round 1: hysteresis_shape: passes" in m for m in steps), steps
     assert res["final"]["effects"] == ["amplifier_current_limit"], (res["candidates"], res["rejected"])
     why = next(r["why"] for r in res["rejected"] if r["effect"] == "hysteresis_shape"
                and "once the others are in" in r["why"])
-    assert "beside amplifier_current_limit" in why
-    assert d.struct_final.refined and d.p_final.n_cells > 0     # the finer loop kept, unnamed
-    assert res["baseline"]["recalibrated"]["loop"]["refined"] is True
+    if "beside amplifier_current_limit" in why:
+        # judged an ordinary loop difference: the finer loop kept, unnamed
+        assert d.struct_final.refined and d.p_final.n_cells > 0
+        assert res["baseline"]["recalibrated"]["loop"]["refined"] is True
+    else:
+        # refused by the ordinary test: with the limit in, the loop does not hold on held-out data
+        assert why.startswith("not needed once the others are in: ") and "worse on held-out data" in why, why
 
 
 def test_a_finer_loop_whose_refit_is_worse_on_held_out_data_keeps_its_own_fit(monkeypatch):
