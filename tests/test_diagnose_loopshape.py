@@ -307,14 +307,16 @@ def test_the_distance_from_the_nominal_operators_is_taken_at_their_best_voltage_
     assert nominal_distance(fitter, _negative_weight(p), noise, nominal)[0] > 1.0
 
 
-def test_a_loop_far_from_the_nominal_operators_at_the_search_end_is_named_when_confident(monkeypatch):
+def test_a_loop_far_from_the_nominal_operators_at_the_search_end_with_weak_held_out_evidence_is_a_candidate(
+        monkeypatch):
     # rig-d10-030 (1.16 kHz): a KP device with a band of switching domains. The recalibrated PI
     # (free-signed weights, thresholds at 0.57 of the stroke's voltage span) draws most of it; the
     # finer loop removes 1.4 noise rms more and is taken in as an ordinary loop difference. The loop
     # the search ends with lies 10.8 noise rms from every classical loop of the nominal operators,
-    # and refitted with one the model fits far worse: a loop shape, but one found only there (right
-    # in 26 of 38 on the fresh draws 11 and 13-16), so at most as confident as the lower end of that
-    # precision's interval, 0.58: named at its own 0.53
+    # and refitted with one the model fits far worse: a loop shape, found only there (right in 26 of
+    # 38 on the fresh draws 11 and 13-16: at most 0.58), named at its own 0.53 at stop 66. Its
+    # held-out rows explain 0.11 of what it removes (the record's largest reversal lies in a training
+    # block), z 7.1 < SHAPE_NOMINAL_HELDOUT_Z: a candidate, as the false loops there are
     from piezo_fmu.diagnose import loopshape
     from piezo_fmu.diagnose.run import analyse
 
@@ -322,17 +324,18 @@ def test_a_loop_far_from_the_nominal_operators_at_the_search_end_is_named_when_c
     assert rec.truth["mechanisms"] == ["hysteresis_shape"]
     steps = []
     res = analyse(raw, say=steps.append).result
-    assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
+    assert res["final"]["effects"] == [], res["final"]["verdict"]
     far = [m for m in steps if "from every classical loop of the nominal operators" in m]
     assert far and float(far[0].split("lies ")[1].split(" x")[0]) >= loopshape.SHAPE_NOMINAL_FAR, far
+    assert any("held-out z" in m and f"< {loopshape.SHAPE_NOMINAL_HELDOUT_Z:g}" in m for m in steps), steps[-20:]
+    shape = [c for c in res["candidates"] if c["effect"] == "hysteresis_shape"]
+    assert shape and shape[0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_WEAK_RIGHT, abs=1e-3)
+    # without the held-out bar it is named, at most at the cap of the class
+    monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_HELDOUT_Z", 0.0)
+    res = analyse(raw).result
+    assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
     assert 0.5 <= res["findings"][0]["confidence"] <= loopshape.SHAPE_NOMINAL_RIGHT, res["findings"]
     assert "refitted with one the model fits the data worse" in res["findings"][0]["evidence"]["note"]
-    # at the precision of draws 11, 13 and 14 alone (11 of 19: 0.43, stops 60-65) a candidate
-    monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_RIGHT", loopshape._wilson_lower(11, 19, loopshape.SHAPE_NOMINAL_Z))
-    res = analyse(raw).result
-    assert res["final"]["effects"] == [], res["final"]["verdict"]
-    shape = [c for c in res["candidates"] if c["effect"] == "hysteresis_shape"]
-    assert shape and shape[0]["confidence"] == pytest.approx(0.4333, abs=1e-3), res["candidates"]
     # without the final measure (the rule before): an ordinary loop difference, no candidate either
     monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_FAR", float("inf"))
     monkeypatch.setattr(loopshape, "SHAPE_NAMED_NEAR", float("inf"))
@@ -437,3 +440,6 @@ def test_a_loop_found_at_the_search_end_is_as_confident_as_the_lower_end_of_its_
     assert (right, found) == (26, 38)
     assert loopshape.SHAPE_NOMINAL_RIGHT == pytest.approx(0.5817, abs=1e-4)
     assert CONFIDENT < loopshape.SHAPE_NOMINAL_RIGHT < right / found
+    # below the held-out bar: right in 2 of 8, a candidate whatever its own confidence
+    assert loopshape.SHAPE_NOMINAL_WEAK == (2, 8)
+    assert loopshape.SHAPE_NOMINAL_WEAK_RIGHT == pytest.approx(0.1089, abs=1e-4) < CONFIDENT
