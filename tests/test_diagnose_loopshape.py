@@ -331,7 +331,7 @@ def test_a_loop_far_from_the_nominal_operators_at_the_search_end_with_weak_held_
     shape = [c for c in res["candidates"] if c["effect"] == "hysteresis_shape"]
     assert shape and shape[0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_WEAK_RIGHT, abs=1e-3)
     # without the held-out bar it is named, at most at the cap of the class
-    monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_HELDOUT_Z", 0.0)
+    monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_HELDOUT_Z", float("-inf"))
     res = analyse(raw).result
     assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
     assert 0.5 <= res["findings"][0]["confidence"] <= loopshape.SHAPE_NOMINAL_RIGHT, res["findings"]
@@ -380,9 +380,15 @@ def test_a_loop_that_removes_little_of_its_departure_on_a_channel_is_not_named(m
     res = analyse(raw, say=steps.append).result
     assert res["final"]["effects"] == [], res["final"]["verdict"]
     assert any("on us it removes 0.00 x the noise" in m for m in steps), steps
-    # without the rule (and the end's finding trusted as named): a false loop shape
+    # without the rule (and the end's finding trusted as named) the held-out bar keeps it out ...
     monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_SHOWN", 0.0)
     monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_RIGHT", 1.0)
+    steps = []
+    assert analyse(raw, say=steps.append).result["final"]["effects"] == []
+    assert any("held-out z" in m and f"< {loopshape.SHAPE_NOMINAL_HELDOUT_Z:g}" in m for m in steps), steps[-20:]
+    # ... (its z on us is -5.6: the held-out rows take the loop the other way) and without both, a
+    # false loop shape
+    monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_HELDOUT_Z", float("-inf"))
     assert analyse(raw).result["final"]["effects"] == ["hysteresis_shape"]
 
 
@@ -442,4 +448,5 @@ def test_a_loop_found_at_the_search_end_is_as_confident_as_the_lower_end_of_its_
     assert CONFIDENT < loopshape.SHAPE_NOMINAL_RIGHT < right / found
     # below the held-out bar: right in 2 of 8, a candidate whatever its own confidence
     assert loopshape.SHAPE_NOMINAL_WEAK == (2, 8)
-    assert loopshape.SHAPE_NOMINAL_WEAK_RIGHT == pytest.approx(0.1089, abs=1e-4) < CONFIDENT
+    assert loopshape.SHAPE_NOMINAL_WEAK_RIGHT == pytest.approx(0.1089, abs=1e-4)
+    assert loopshape.SHAPE_NOMINAL_WEAK_RIGHT < CONFIDENT
