@@ -49,7 +49,8 @@ from .stats import compare
 __all__ = ["CLASSICAL_OPERATORS", "CLASSICAL_ROWS", "CLASSICAL_SCALES", "CLASSICAL_SPACINGS", "NOMINAL_SCALES",
            "SHAPE_BESIDE_BEYOND", "SHAPE_BEYOND", "SHAPE_BEYOND_NOMINAL", "SHAPE_BEYOND_REMOVED",
            "SHAPE_EXPLAINED", "SHAPE_EXPLAINED_EACH", "SHAPE_FURTHER_EXPLAINED", "SHAPE_NOMINAL_FAR",
-           "SHAPE_NAMED_NEAR", "SHAPE_NOMINAL_HELDOUT_Z", "SHAPE_NOMINAL_RIGHT", "SHAPE_NOMINAL_SEEN", "SHAPE_NOMINAL_SHOWN",
+           "SHAPE_NAMED_NEAR", "SHAPE_NOMINAL_HELDOUT_Z", "SHAPE_NOMINAL_RIGHT", "SHAPE_NOMINAL_SEEN",
+           "SHAPE_NOMINAL_SHOWN",
            "SHAPE_PARTIAL_BEYOND", "SHAPE_PARTIAL_EXPLAINED",
            "SHAPE_PARTIAL_REMOVED", "SHAPE_REMOVED", "beyond_classical", "classical_named", "classical_refit",
            "further_from_nominal", "loop_beside", "nominal_distance", "nominal_shape", "shape_from_nominal",
@@ -448,7 +449,8 @@ def shape_from_nominal(fitter: Fitter, current: Params, struct, strong, weak, re
         step(f"hysteresis_shape: confidence {shape['confidence']:.2f}, at most {SHAPE_NOMINAL_RIGHT:.2f} for a "
              "loop shape found only at the search's end (how often one was right on a fresh draw)")
         shape = {**shape, "confidence": SHAPE_NOMINAL_RIGHT}
-    z_low = {c: v["z_heldout"] for c, v in shape["cmp"]["channels"].items() if v["z_heldout"] < SHAPE_NOMINAL_HELDOUT_Z}
+    z_low = {c: v["z_heldout"] for c, v in shape["cmp"]["channels"].items()
+             if v["z_heldout"] < SHAPE_NOMINAL_HELDOUT_Z}
     if z_low and shape["confidence"] > SHAPE_NOMINAL_WEAK_RIGHT:
         step("hysteresis_shape: held-out z " + ", ".join(f"{c} {z:.1f}" for c, z in z_low.items())
              + f" < {SHAPE_NOMINAL_HELDOUT_Z:g}: confidence at most {SHAPE_NOMINAL_WEAK_RIGHT:.2f} (how often such "
