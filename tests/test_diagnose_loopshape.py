@@ -450,3 +450,28 @@ def test_a_loop_found_at_the_search_end_is_as_confident_as_the_lower_end_of_its_
     assert loopshape.SHAPE_NOMINAL_WEAK == (2, 8)
     assert loopshape.SHAPE_NOMINAL_WEAK_RIGHT == pytest.approx(0.1089, abs=1e-4)
     assert loopshape.SHAPE_NOMINAL_WEAK_RIGHT < CONFIDENT
+
+
+def test_a_loop_at_the_search_end_without_a_held_out_z_is_a_candidate(monkeypatch):
+    # the held-out bar reads a z of nan (no held-out evidence, :func:`.stats.compare` leaves such a
+    # channel out of its total) as below it; a z at the bar on every channel is named at the cap
+    from piezo_fmu.diagnose import loopshape
+    from piezo_fmu.diagnose.fit import Structure
+
+    def shape(zs):
+        return {"name": "hysteresis_shape", "confidence": 0.97,
+                "cmp": {"channels": {c: {"z_heldout": z} for c, z in zs.items()}}}
+
+    for zs, named in (({"x": float("nan"), "us": 40.0}, False), ({"x": 3.0}, False),
+                      ({"x": loopshape.SHAPE_NOMINAL_HELDOUT_Z, "us": 40.0}, True)):
+        monkeypatch.setattr(loopshape, "nominal_shape", lambda *a, zs=zs: shape(zs))
+        steps = []
+        struct = Structure()
+        s2, strong, weak = loopshape.shape_from_nominal(None, None, struct, [], [], [], None, {}, None,
+                                                        steps.append)
+        if named:
+            assert not weak and strong[0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_RIGHT)
+            assert s2.effects == ("hysteresis_shape",)
+        else:
+            assert not strong and weak[0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_WEAK_RIGHT)
+            assert s2 is struct and any("held-out z" in m for m in steps), steps

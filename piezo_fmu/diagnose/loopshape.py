@@ -450,7 +450,7 @@ def shape_from_nominal(fitter: Fitter, current: Params, struct, strong, weak, re
              "loop shape found only at the search's end (how often one was right on a fresh draw)")
         shape = {**shape, "confidence": SHAPE_NOMINAL_RIGHT}
     z_low = {c: v["z_heldout"] for c, v in shape["cmp"]["channels"].items()
-             if v["z_heldout"] < SHAPE_NOMINAL_HELDOUT_Z}
+             if not v["z_heldout"] >= SHAPE_NOMINAL_HELDOUT_Z}      # (a z of nan is no evidence)
     if z_low and shape["confidence"] > SHAPE_NOMINAL_WEAK_RIGHT:
         step("hysteresis_shape: held-out z " + ", ".join(f"{c} {z:.1f}" for c, z in z_low.items())
              + f" < {SHAPE_NOMINAL_HELDOUT_Z:g}: confidence at most {SHAPE_NOMINAL_WEAK_RIGHT:.2f} (how often such "
