@@ -204,6 +204,41 @@ def test_the_compiled_sos_filter_is_scipys_sosfilt_to_the_bit():
             assert np.array_equal(sos_filter(sos[:ns], y[:n]), sosfilt(sos[:ns], y[:n], axis=-1)), (ns, n)
 
 
+def test_a_second_process_loads_the_diagnose_kernels_from_the_cache(tmp_path):
+    # every diagnosis is a process of its own (the CLI, the evaluation's cases): until stop 67 the
+    # kernels were closures over their compiled callees, which numba's cache keys by their pickled
+    # cells (new in every process): each diagnosis compiled them again (~10 s) and added copies to
+    # the cache folder. A second process must find every kernel there and compile none
+    import json
+    import os
+    import subprocess
+    import sys
+
+    probe = ("import json, numpy as np\n"
+             "from piezo_fmu.diagnose.kernels import kernels\n"
+             "amp_run, play_run, pi_run, cell_run, sos_run = kernels()\n"
+             "v = np.sin(np.linspace(0.0, 6.0, 300))\n"
+             "r, w, z0 = np.linspace(0.0, 0.5, 5), np.full(5, 0.2), np.zeros(5)\n"
+             "out = [amp_run(10 * v, 2, 1.0, 1e-3, 1e6, -5.0, 5.0, 1e-4, 0.0, np.empty(v.size)),\n"
+             "       play_run(v, r, np.empty((5, v.size)), z0), pi_run(v, r, w, 0.1, np.empty(v.size), z0),\n"
+             "       cell_run(v, r, -r, np.full(5, 0.1), np.zeros(5), np.zeros(5), w, np.zeros((1, v.size)))]\n"
+             "sos = np.array([[0.1, 0.2, 0.1, 1.0, -0.5, 0.2]] * 3)\n"
+             "for ns, rows in ((1, 1), (2, 4), (3, 5)):\n"
+             "    x = np.tile(v, (rows, 1))\n"
+             "    out.append(sos_run(sos[:ns], x, 1.0, np.empty(0), np.zeros(1), np.empty_like(x)))\n"
+             "k = dict(zip(('amp_run', 'play_run', 'pi_run', 'cell_run', 'sos_run'), kernels()))\n"
+             "print(json.dumps({'hits': {n: len(f.stats.cache_hits) for n, f in k.items()},\n"
+             "                  'misses': {n: len(f.stats.cache_misses) for n, f in k.items()},\n"
+             "                  'sum': [float(np.sum(o)) for o in out]}))\n")
+    env = {**os.environ, "PIEZO_FMU_CACHE": str(tmp_path)}
+    runs = [json.loads(subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
+                                      check=True).stdout) for _ in range(2)]
+    assert all(m >= 1 for m in runs[0]["misses"].values()), runs[0]        # compiled, then saved
+    assert runs[1]["misses"] == dict.fromkeys(runs[1]["misses"], 0), runs[1]
+    assert all(h >= 1 for h in runs[1]["hits"].values()), runs[1]
+    assert runs[0]["sum"] == runs[1]["sum"]
+
+
 def test_the_compiled_operators_are_the_play_rule_summed_in_order():
     # the engine's play operators run several side by side: each is still the play rule sample
     # after sample, and the weighted sum adds them one after another, as the core does (to the bit)

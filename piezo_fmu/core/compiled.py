@@ -44,7 +44,7 @@ from .control import compensator_step
 from .plant import actuator_step
 
 __all__ = ["ENGINES", "available", "cache_dir", "jit", "sources_digest", "kernels", "compile_function",
-           "compile_unit", "warm", "actuator_run",
+           "rebind", "compile_unit", "warm", "actuator_run",
            "compensator_run", "KERNEL_ORDER", "ACTUATOR_REGIONS", "COMPENSATOR_REGIONS"]
 
 ENGINES = {"python": 0, "numba": 1}     # Integer codes of the FMUs' simulation.engine parameter
@@ -164,12 +164,21 @@ def jit(func=None, **opts):
             config.CACHE_DIR = saved
 
 
-def compile_function(func, compiled, inline=False):
-    """``func`` compiled by numba (:func:`jit`) with its global names re-bound to the ``compiled``
-    callees (a dict name -> compiled function); ``inline``: inline it into its compiled callers."""
+def rebind(func, compiled):
+    """A copy of ``func`` (same code, defaults and file) whose global names in ``compiled`` (a dict
+    name -> compiled function) are re-bound to those: a module-level function compiled with
+    compiled callees. Unlike a closure over the callees, its numba cache entry is found again in
+    the next process (numba keys a closure by its pickled cells, a dispatcher's differ per process)."""
     env = dict(func.__globals__)
     env.update(compiled)
-    clone = types.FunctionType(func.__code__, env, func.__name__, func.__defaults__, func.__closure__)
+    return types.FunctionType(func.__code__, env, func.__name__, func.__defaults__, func.__closure__)
+
+
+def compile_function(func, compiled, inline=False):
+    """``func`` compiled by numba (:func:`jit`) with its global names re-bound to the ``compiled``
+    callees (a dict name -> compiled function, :func:`rebind`); ``inline``: inline it into its
+    compiled callers."""
+    clone = rebind(func, compiled)
     opts = {"nogil": True, "error_model": "numpy"}
     if inline:
         opts["inline"] = "always"
