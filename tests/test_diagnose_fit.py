@@ -137,13 +137,14 @@ def test_a_diagnosis_on_one_thread_is_the_diagnosis_on_two(tmp_path, monkeypatch
     pooled = []
     made = workers.pool
     monkeypatch.setattr(workers, "pool", lambda n=None: pooled.append(n) or made(n))
-    runs = {}
+    runs, work = {}, {}
     for n in (1, 2):
         res = diagnose([path], threads=n, time_budget_s=None).result
-        res.pop("timing_s")
+        work[n] = res.pop("timing_s")["work_reference_s"]   # the work counted: what the budget reads
         runs[n] = json.dumps(res, sort_keys=True)
         assert len(pooled) > 20 if n == 2 else not pooled, (n, len(pooled))
     assert runs[1] == runs[2]
+    assert work[1] == work[2] > 0.0
 
 
 def test_the_thread_count_is_checked():

@@ -233,6 +233,10 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     if fitter.ordinary != ordinary_before:
         revisited[0] = True          # an ordinary item found during the selection (a first mode)
     timing["selection_s"] = time.perf_counter() - t_start - timing["recalibration_s"]
+    # the work counted up to here (recalibration and search) in seconds of the reference machine:
+    # against the seconds it took, how this machine and this recording's kind of work compare
+    # with the calibration of WORK_PER_S (the budget ends the search at time_budget_s of it)
+    timing["work_reference_s"] = fitter.work / WORK_PER_S
     noise, noise_ar = noise_levels(fitter, p_final)
     # the recalibrated nominal model: every ordinary item found (also those found after a finding,
     # and a refined loop), no mechanism; without findings it is the final model itself
