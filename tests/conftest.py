@@ -88,3 +88,20 @@ def built_fmus(fmu_build):
 def passthrough_fmu(fmu_build):
     """Path of PassThrough.fmu (y = u on the same base class), built with the session's FMUs."""
     return fmu_build["PassThrough"]
+
+
+@pytest.fixture
+def fresh_processes(tmp_path):
+    """Run a Python snippet that prints one JSON line in ``n`` new processes one after another, all
+    with the compiled kernels' cache in a new folder (``PIEZO_FMU_CACHE``); returns what each printed."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    def run(probe, n=2):
+        env = {**os.environ, "PIEZO_FMU_CACHE": str(tmp_path)}
+        return [json.loads(subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
+                                          check=True).stdout) for _ in range(n)]
+    run.cache = tmp_path
+    return run

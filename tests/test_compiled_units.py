@@ -214,12 +214,12 @@ def test_a_changed_source_of_any_compiled_module_gives_another_cache_folder(tmp_
     assert len(seen) == 5
 
 
-def test_a_second_process_loads_the_compiled_kernels_from_the_cache(tmp_path):
-    import json
+def test_a_second_process_loads_the_compiled_kernels_from_the_cache(fresh_processes):
     import os
     import subprocess
     import sys
 
+    tmp_path = fresh_processes.cache
     probe = ("import json, numpy as np\n"
              "from piezo_fmu.core import compiled\n"
              "from piezo_fmu.model import load_model\n"
@@ -229,14 +229,12 @@ def test_a_second_process_loads_the_compiled_kernels_from_the_cache(tmp_path):
              "run = compiled.kernels()['actuator_run']\n"
              "print(json.dumps({'dir': str(compiled.cache_dir()), 'hits': len(run.stats.cache_hits),\n"
              "                  'x': [float(v) for v in x]}))\n")
-    env = {**os.environ, "PIEZO_FMU_CACHE": str(tmp_path)}
-    runs = [json.loads(subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
-                                      check=True).stdout) for _ in range(2)]
+    runs = fresh_processes(probe)
     assert runs[0]["dir"].startswith(str(tmp_path)) and runs[0]["dir"] == runs[1]["dir"]
     assert runs[0]["hits"] == 0 and runs[1]["hits"] >= 1
     assert runs[0]["x"] == runs[1]["x"]
     off = subprocess.run([sys.executable, "-c", "from piezo_fmu.core import compiled; print(compiled.cache_dir())"],
-                         env={**env, "PIEZO_FMU_CACHE": "off"}, capture_output=True, text=True, check=True)
+                         env={**os.environ, "PIEZO_FMU_CACHE": "off"}, capture_output=True, text=True, check=True)
     assert off.stdout.strip() == "None"
 
 

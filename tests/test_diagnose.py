@@ -204,16 +204,11 @@ def test_the_compiled_sos_filter_is_scipys_sosfilt_to_the_bit():
             assert np.array_equal(sos_filter(sos[:ns], y[:n]), sosfilt(sos[:ns], y[:n], axis=-1)), (ns, n)
 
 
-def test_a_second_process_loads_the_diagnose_kernels_from_the_cache(tmp_path):
+def test_a_second_process_loads_the_diagnose_kernels_from_the_cache(fresh_processes):
     # every diagnosis is a process of its own (the CLI, the evaluation's cases): until stop 67 the
     # kernels were closures over their compiled callees, which numba's cache keys by their pickled
     # cells (new in every process): each diagnosis compiled them again (~10 s) and added copies to
     # the cache folder. A second process must find every kernel there and compile none
-    import json
-    import os
-    import subprocess
-    import sys
-
     probe = ("import json, numpy as np\n"
              "from piezo_fmu.diagnose.kernels import kernels\n"
              "amp_run, play_run, pi_run, cell_run, sos_run = kernels()\n"
@@ -230,9 +225,7 @@ def test_a_second_process_loads_the_diagnose_kernels_from_the_cache(tmp_path):
              "print(json.dumps({'hits': {n: len(f.stats.cache_hits) for n, f in k.items()},\n"
              "                  'misses': {n: len(f.stats.cache_misses) for n, f in k.items()},\n"
              "                  'sum': [float(np.sum(o)) for o in out]}))\n")
-    env = {**os.environ, "PIEZO_FMU_CACHE": str(tmp_path)}
-    runs = [json.loads(subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True,
-                                      check=True).stdout) for _ in range(2)]
+    runs = fresh_processes(probe)
     assert all(m >= 1 for m in runs[0]["misses"].values()), runs[0]        # compiled, then saved
     assert runs[1]["misses"] == dict.fromkeys(runs[1]["misses"], 0), runs[1]
     assert all(h >= 1 for h in runs[1]["hits"].values()), runs[1]
