@@ -202,16 +202,17 @@ def test_a_changed_source_of_any_compiled_module_gives_another_cache_folder(tmp_
     copy_ = tmp_path / "piezo_fmu"
     shutil.copytree(pkg / "core", copy_ / "core")
     (copy_ / "diagnose").mkdir()
-    shutil.copy(pkg / "diagnose" / "engine.py", copy_ / "diagnose" / "engine.py")
+    for name in ("engine.py", "kernels.py"):
+        shutil.copy(pkg / "diagnose" / name, copy_ / "diagnose" / name)
     shutil.copy(pkg / "simulate.py", copy_ / "simulate.py")
     first = compiled.sources_digest(copy_)
     assert first == compiled.sources_digest(pkg)
     seen = {first}
-    for rel in ("core/plant.py", "core/hysteresis.py", "diagnose/engine.py", "simulate.py"):
+    for rel in ("core/plant.py", "core/hysteresis.py", "diagnose/engine.py", "diagnose/kernels.py", "simulate.py"):
         f = copy_ / rel
         f.write_text(f.read_text() + "\n# changed\n")
         seen.add(compiled.sources_digest(copy_))
-    assert len(seen) == 5
+    assert len(seen) == 6
 
 
 def test_a_second_process_loads_the_compiled_kernels_from_the_cache(fresh_processes):

@@ -102,7 +102,7 @@ def compensator_run(t, x_ref_in, us, h, buf, o):
 
 # the modules whose functions are compiled (besides the core's): a change to any of them, or to the
 # core, gives a new cache folder
-_COMPILING_MODULES = ("simulate.py", "diagnose/engine.py")
+_COMPILING_MODULES = ("simulate.py", "diagnose/engine.py", "diagnose/kernels.py")
 _CACHE_LOCK = threading.Lock()
 
 
