@@ -239,6 +239,50 @@ def test_a_second_process_loads_the_compiled_kernels_from_the_cache(fresh_proces
     assert off.stdout.strip() == "None"
 
 
+def test_cache_folders_of_other_sources_unused_for_a_month_are_removed_when_a_new_one_is_made(tmp_path,
+                                                                                           monkeypatch):
+    # every edited or upgraded install compiles into a folder of its own (the digest): those of
+    # installs long gone must not pile up; a recent one (another version in use) and what is not a
+    # cache folder stay
+    import os
+    import time
+
+    month_ago = time.time() - 40 * 86400.0
+    folders = {}
+    for name in ("numba-old", "numba-recent", "notes"):
+        d = tmp_path / name
+        (d / "kernels").mkdir(parents=True)
+        (d / "kernels" / "k.nbi").write_text("index")
+        folders[name] = d
+    for name in ("numba-old", "notes"):
+        d = folders[name]
+        for f in (d / "kernels" / "k.nbi", d / "kernels", d):
+            os.utime(f, (month_ago, month_ago))
+    keep = tmp_path / "numba-current"
+    keep.mkdir()
+    os.utime(keep, (month_ago, month_ago))
+    assert compiled.prune_caches(tmp_path, keep) == [folders["numba-old"]]
+    assert not folders["numba-old"].exists()
+    assert folders["numba-recent"].exists() and folders["notes"].exists() and keep.exists()
+    # cache_dir prunes when it makes its folder, and only then
+    old = tmp_path / "numba-older"
+    (old / "k").mkdir(parents=True)
+    for f in (old / "k", old):
+        os.utime(f, (month_ago, month_ago))
+    monkeypatch.setenv("PIEZO_FMU_CACHE", str(tmp_path))
+    compiled.cache_dir.cache_clear()
+    try:
+        made = compiled.cache_dir()
+        assert made.parent == tmp_path and made.name.startswith("numba-") and not old.exists()
+        (old / "k").mkdir(parents=True)
+        for f in (old / "k", old):
+            os.utime(f, (month_ago, month_ago))
+        compiled.cache_dir.cache_clear()
+        assert compiled.cache_dir() == made and old.exists()      # the folder was there already
+    finally:
+        compiled.cache_dir.cache_clear()
+
+
 def _subnormals(values):
     a = np.abs(np.asarray(values, dtype=float))
     return int(np.count_nonzero((a > 0.0) & (a < np.finfo(float).tiny)))

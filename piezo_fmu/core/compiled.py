@@ -24,6 +24,8 @@ FMUs and the interpreted engine need only NumPy; :func:`available` tells whether
   stale after that file changed. With the cache a process loads the kernels (about 1.5 s for
   the whole set on 2 cores) instead of compiling them (6-15 s). ``PIEZO_FMU_CACHE`` names the cache's parent folder
   (default ``$XDG_CACHE_HOME/piezo-fmu`` or ``~/.cache/piezo-fmu``; ``off``: nothing cached).
+  When a new folder is made there, the folders of other sources untouched for
+  :data:`STALE_CACHE_DAYS` are removed (:func:`prune_caches`).
 * Dependencies point one way: this module imports the units' modules (to compile their kernels);
   they never import it. A unit only knows that it may be handed a runner
   (``use_runner``); :func:`compile_unit` hands it the compiled one.
@@ -43,9 +45,8 @@ from . import control, hysteresis, linear, plant, preisach
 from .control import compensator_step
 from .plant import actuator_step
 
-__all__ = ["ENGINES", "available", "cache_dir", "jit", "sources_digest", "kernels", "compile_function",
-           "rebind", "compile_unit", "warm", "actuator_run",
-           "compensator_run", "KERNEL_ORDER", "ACTUATOR_REGIONS", "COMPENSATOR_REGIONS"]
+__all__ = ["ENGINES", "available", "cache_dir", "prune_caches", "STALE_CACHE_DAYS", "jit", "sources_digest",
+           "kernels", "compile_function", "rebind", "compile_unit", "warm", "actuator_run", "compensator_run", "KERNEL_ORDER", "ACTUATOR_REGIONS", "COMPENSATOR_REGIONS"]
 
 ENGINES = {"python": 0, "numba": 1}     # Integer codes of the FMUs' simulation.engine parameter
 
@@ -132,11 +133,45 @@ def cache_dir() -> Path | None:
         base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
         root = os.path.join(base, "piezo-fmu")
     path = Path(root) / f"numba-{sources_digest()}"
+    made = not path.exists()
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError:
         return None
+    if made:        # another version's first run here: the folders of versions long unused go
+        prune_caches(path.parent, path)
     return path if os.access(path, os.W_OK) else None
+
+
+# a cache folder of other sources (an edited or upgraded install) in which nothing was written for
+# this long is removed when a new one is made [days]
+STALE_CACHE_DAYS = 30.0
+
+
+def prune_caches(root, keep, max_age_days=STALE_CACHE_DAYS, now=None) -> list:
+    """Remove the cache folders ``numba-*`` under ``root`` other than ``keep`` in which no file or
+    folder changed for ``max_age_days`` [days] before ``now`` [s since the epoch; default: now];
+    returns those removed. Best effort: a folder another process is using or removing is left or
+    skipped without an error (a kernel whose cache went away is compiled again)."""
+    import shutil
+    import time
+
+    now = time.time() if now is None else now
+    removed = []
+    try:
+        folders = [d for d in Path(root).glob("numba-*") if d.is_dir() and d.resolve() != Path(keep).resolve()]
+    except OSError:
+        return removed
+    for d in folders:
+        try:
+            newest = max([d.stat().st_mtime] + [f.stat().st_mtime for f in d.rglob("*")])
+        except OSError:
+            continue
+        if now - newest > max_age_days * 86400.0:
+            shutil.rmtree(d, ignore_errors=True)
+            if not d.exists():
+                removed.append(d)
+    return removed
 
 
 def jit(func=None, **opts):
