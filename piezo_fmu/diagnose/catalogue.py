@@ -515,6 +515,14 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
             # - the lags it would stand for are re-fitted in its place, and it must beat them
             z1 = p_after.mode(fitter.dev)[1]
             if z1 > MODE_LIGHT:
+                # a moved mode at the end of its search range is not one the data place: the further
+                # mode is the device's own first mode found again (rig-d19-074, a clean device: its
+                # 2.69 kHz mode named as a further one at 2.64 kHz, the first mode moved to 10.2 kHz,
+                # zeta 0.26 - 0.85 x the sample rate - and dropped there by the recalibration after)
+                if fitter.at_range_end("mech_f", f1) or fitter.at_range_end("mech_zeta", z1, p_after):
+                    return False, (f"it takes the place of the recalibrated first mode ({f0:.4g} Hz) and "
+                                   f"moves that to the end of its search range ({f1:.4g} Hz, damping ratio "
+                                   f"{z1:.2f}): the device's own mode found again, not a further one")
                 alt = swap_lag_account(fitter, p_before, p_after, struct)
                 c0, c2 = fitter.cost(p_before), fitter.cost(p_after)
                 kept = (c0 - alt.cost) / max(c0 - c2, 1e-300)

@@ -137,8 +137,8 @@ def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
     if changed:
         rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 20, held=False).params
         f, z = rc.params.mode(fitter.dev)
-        if "mech_f" in fitter.ordinary and (_edge(fitter, "mech_f", f)
-                                            or _edge(fitter, "mech_zeta", z, rc.params)):
+        if "mech_f" in fitter.ordinary and (fitter.at_range_end("mech_f", f)
+                                            or fitter.at_range_end("mech_zeta", z, rc.params)):
             # settled at the end of its range: not a mode the data see (a lag or a delay passing for one)
             drop(fitter, rc, "mode", why=f"settled at the end of its search range ({f:.4g} Hz, zeta {z:.3g})")
             rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 12).params
@@ -217,12 +217,6 @@ def _promise(fitter, q0, q1):
     return fitter.n_eff * math.log(max(q0, 1e-300) / max(q1, 1e-300))
 
 
-def _edge(fitter, name, v, p=None):
-    lo, hi = fitter.bounds(name, p)
-    span = math.log(hi / lo)
-    return math.log(v / lo) < 0.01 * span or math.log(hi / v) < 0.01 * span
-
-
 def _mode(fitter, rc, struct, sat):
     """The first mode (grid over frequency and damping for each pick-off, joint fit of the best
     three) and what the sensor follows; kept when the data see them."""
@@ -284,7 +278,7 @@ def _mode(fitter, rc, struct, sat):
     best = min(tried, key=lambda fr: fr.cost)
     gain, _ = _gain(fitter, p, best.params, 2 + (best.params.pick != p.pick))
     f_fit, z_fit = best.params.mode(fitter.dev)
-    edge = _edge(fitter, "mech_f", f_fit) or _edge(fitter, "mech_zeta", z_fit, best.params)
+    edge = fitter.at_range_end("mech_f", f_fit) or fitter.at_range_end("mech_zeta", z_fit, best.params)
     if gain > ACCEPT["dbic"] and not edge:
         q = best.params
         fitter.ordinary = fitter.ordinary + ["mech_f", "mech_zeta"]
@@ -324,7 +318,7 @@ def mode_at(fitter: Fitter, p, struct: Structure, f, zeta, without_items=()):
         if best is None or fr.cost < best.cost:
             best = fr
     f_fit, z_fit = best.params.mode(fitter.dev)
-    if _edge(fitter, "mech_f", f_fit) or _edge(fitter, "mech_zeta", z_fit, best.params):
+    if fitter.at_range_end("mech_f", f_fit) or fitter.at_range_end("mech_zeta", z_fit, best.params):
         return None
     return best
 
@@ -410,7 +404,7 @@ def _threshold_scale_fit(fitter, rc, struct, sat, start):
         return False
     fr = _fit(fitter, best.params, struct, ["u_norm", "tau"] + sat, 8)
     gain, _ = _gain(fitter, p, fr.params, 1)
-    edge = _edge(fitter, "u_norm", fr.params.u_norm)
+    edge = fitter.at_range_end("u_norm", fr.params.u_norm)
     if gain > ACCEPT["dbic"] and not edge:
         rc.report["threshold_scale"] = {"identified": True, "bic_gain": round(gain, 1),
                                         "u_norm_V": float(f"{fr.params.u_norm:.6g}"),
@@ -455,7 +449,7 @@ def _order(fitter, rc, struct, sat):
         trials.append(_fit(fitter, q, struct, fitter.ordinary + ["tau2"], 20))
     two = min(trials, key=lambda fr: fr.cost)
     gain, _ = _gain(fitter, p, two.params, 1)
-    if gain > ACCEPT["dbic"] and not _edge(fitter, "tau2", two.params.tau2):
+    if gain > ACCEPT["dbic"] and not fitter.at_range_end("tau2", two.params.tau2):
         rc.params = two.params
         fitter.ordinary = fitter.ordinary + ["tau2"]
         rc.report["amplifier_order"] = {"value": 2, "bic_gain": round(gain, 1)}
