@@ -25,6 +25,7 @@ from .drifts import drift_start
 from .fit import Fitter, Structure
 from .residuals import taken_in_holds
 from .starts import further_mode_start, log_grid, swap_lag_account, with_params
+from .stats import near_range_end
 
 __all__ = ["CATALOGUE", "Mechanism", "other_charge", "plausible", "propose"]
 
@@ -519,7 +520,8 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
                 # mode is the device's own first mode found again (rig-d19-074, a clean device: its
                 # 2.69 kHz mode named as a further one at 2.64 kHz, the first mode moved to 10.2 kHz,
                 # zeta 0.26 - 0.85 x the sample rate - and dropped there by the recalibration after)
-                if fitter.at_range_end("mech_f", f1) or fitter.at_range_end("mech_zeta", z1, p_after):
+                if (near_range_end(f1, *fitter.bounds("mech_f"))
+                        or near_range_end(z1, *fitter.bounds("mech_zeta", p_after))):
                     return False, (f"it takes the place of the recalibrated first mode ({f0:.4g} Hz) and "
                                    f"moves that to the end of its search range ({f1:.4g} Hz, damping ratio "
                                    f"{z1:.2f}): the device's own mode found again, not a further one")

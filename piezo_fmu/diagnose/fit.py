@@ -240,14 +240,6 @@ class Fitter:
             self.n_eval += 1
             self.work += weight * (self.n_samples + EVAL_OVERHEAD)
 
-    def at_range_end(self, name, v, p=None) -> bool:
-        """True when the value ``v`` of the parameter ``name`` lies within 1 % (in log) of its search
-        range's span from either end (:meth:`bounds`): a search that ran out, not a value the data
-        placed."""
-        lo, hi = self.bounds(name, p)
-        span = math.log(hi / lo)
-        return math.log(v / lo) < 0.01 * span or math.log(hi / v) < 0.01 * span
-
     def bounds(self, name, p=None):
         if name in self.limits:
             return self.limits[name]

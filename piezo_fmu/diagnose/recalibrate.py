@@ -36,7 +36,7 @@ from .engine import predict
 from .fit import Fitter, Structure, free_names, set_value
 from .residuals import ACCEPT, full_residuals, residual_sets, spectral_peaks
 from .starts import with_params
-from .stats import compare, noise_level, tau_int
+from .stats import compare, near_range_end, noise_level, tau_int
 from .uncertainty import uncertainty
 
 __all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "mode_at", "ordinary_names", "recalibrate"]
@@ -137,8 +137,8 @@ def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
     if changed:
         rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 20, held=False).params
         f, z = rc.params.mode(fitter.dev)
-        if "mech_f" in fitter.ordinary and (fitter.at_range_end("mech_f", f)
-                                            or fitter.at_range_end("mech_zeta", z, rc.params)):
+        if "mech_f" in fitter.ordinary and (near_range_end(f, *fitter.bounds("mech_f"))
+                                            or near_range_end(z, *fitter.bounds("mech_zeta", rc.params))):
             # settled at the end of its range: not a mode the data see (a lag or a delay passing for one)
             drop(fitter, rc, "mode", why=f"settled at the end of its search range ({f:.4g} Hz, zeta {z:.3g})")
             rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 12).params
@@ -278,7 +278,8 @@ def _mode(fitter, rc, struct, sat):
     best = min(tried, key=lambda fr: fr.cost)
     gain, _ = _gain(fitter, p, best.params, 2 + (best.params.pick != p.pick))
     f_fit, z_fit = best.params.mode(fitter.dev)
-    edge = fitter.at_range_end("mech_f", f_fit) or fitter.at_range_end("mech_zeta", z_fit, best.params)
+    edge = (near_range_end(f_fit, *fitter.bounds("mech_f"))
+            or near_range_end(z_fit, *fitter.bounds("mech_zeta", best.params)))
     if gain > ACCEPT["dbic"] and not edge:
         q = best.params
         fitter.ordinary = fitter.ordinary + ["mech_f", "mech_zeta"]
@@ -318,7 +319,8 @@ def mode_at(fitter: Fitter, p, struct: Structure, f, zeta, without_items=()):
         if best is None or fr.cost < best.cost:
             best = fr
     f_fit, z_fit = best.params.mode(fitter.dev)
-    if fitter.at_range_end("mech_f", f_fit) or fitter.at_range_end("mech_zeta", z_fit, best.params):
+    if (near_range_end(f_fit, *fitter.bounds("mech_f"))
+            or near_range_end(z_fit, *fitter.bounds("mech_zeta", best.params))):
         return None
     return best
 
@@ -404,7 +406,7 @@ def _threshold_scale_fit(fitter, rc, struct, sat, start):
         return False
     fr = _fit(fitter, best.params, struct, ["u_norm", "tau"] + sat, 8)
     gain, _ = _gain(fitter, p, fr.params, 1)
-    edge = fitter.at_range_end("u_norm", fr.params.u_norm)
+    edge = near_range_end(fr.params.u_norm, *fitter.bounds("u_norm"))
     if gain > ACCEPT["dbic"] and not edge:
         rc.report["threshold_scale"] = {"identified": True, "bic_gain": round(gain, 1),
                                         "u_norm_V": float(f"{fr.params.u_norm:.6g}"),
@@ -449,7 +451,7 @@ def _order(fitter, rc, struct, sat):
         trials.append(_fit(fitter, q, struct, fitter.ordinary + ["tau2"], 20))
     two = min(trials, key=lambda fr: fr.cost)
     gain, _ = _gain(fitter, p, two.params, 1)
-    if gain > ACCEPT["dbic"] and not fitter.at_range_end("tau2", two.params.tau2):
+    if gain > ACCEPT["dbic"] and not near_range_end(two.params.tau2, *fitter.bounds("tau2")):
         rc.params = two.params
         fitter.ordinary = fitter.ordinary + ["tau2"]
         rc.report["amplifier_order"] = {"value": 2, "bic_gain": round(gain, 1)}

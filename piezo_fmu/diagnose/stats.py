@@ -18,7 +18,15 @@ from scipy import stats as sst
 from scipy.ndimage import median_filter
 from scipy.signal import welch
 
-__all__ = ["compare", "improvement_band", "input_xcorr", "noise_std", "psd", "tau_int", "whiteness"]
+__all__ = ["compare", "improvement_band", "input_xcorr", "near_range_end", "noise_std", "psd", "tau_int",
+           "whiteness"]
+
+
+def near_range_end(v, lo, hi, rel=0.01) -> bool:
+    """True when ``v`` lies within ``rel`` of the log span of the search range ``lo``-``hi`` from
+    either end: a search that ran out, not a value the data placed."""
+    span = math.log(hi / lo)
+    return math.log(v / lo) < rel * span or math.log(hi / v) < rel * span
 
 
 def psd(e, fs, nperseg=None):
