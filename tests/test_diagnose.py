@@ -1876,6 +1876,27 @@ def test_a_drift_beside_creep_is_checked_after_the_search_budget_is_spent():
                for r in res["rejected"])
 
 
+def test_a_round_whose_screening_spends_the_budget_fits_nothing():
+    # synth case 34 (creep and a delay): round 2 begins at 6.8 reference seconds of work and its
+    # screening ends at 7.65. With a budget of 7.2 the round began inside it; its fits would all be
+    # spent past it (rig-d14-095: a third of its time, bench's slowest case). The round reports
+    # what it screened and fits nothing: the findings are round 1's (before: a drift fitted and named
+    # past the budget, the search ending "after 2 round(s)")
+    from piezo_fmu.diagnose.run import analyse
+
+    case = make_case(34, ["creep", "time_delay"], "mid", ["chirp", "steps"], fs=2000.0)
+    raw = [{"name": "budget", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
+    lines = []
+    res = analyse(raw, time_budget_s=7.2, say=lines.append).result
+    notes = [r["why"] for r in res["rejected"] if r["effect"] == "-"]
+    assert notes == ["time budget reached during round 2's screening: no candidate fitted "
+                     "(the best screened: thermal_drift)"], res["rejected"]
+    assert not any(line.startswith("round 2: fitting") or "] round 2: fitting" in line for line in lines)
+    assert any("round 2: screening gains" in line for line in lines)
+    assert "thermal_drift" not in res["final"]["effects"]
+    assert {f["effect"] for f in res["findings"]} | {c["effect"] for c in res["candidates"]} <= {"time_delay"}
+
+
 def test_a_further_mode_must_beat_the_first_mode_there_by_the_naming_threshold(monkeypatch):
     # rig-d2-126: a clean device (PI on other thresholds, 526 Hz sampling). A further mode at
     # 215.8 Hz beat the device's first mode at that frequency by BIC 6.9 and was named: positive
