@@ -24,6 +24,7 @@ import numpy as np
 from ..errors import UserError
 from ..model import Model, load_model
 from . import locate, workers
+from .budget import TIME_BUDGET_S, WORK_PER_S
 from .blas import single_thread
 from .engine import Device, Params, device_from_model, params_from_model, predict
 from .fit import Fitter, Structure, strip
@@ -64,15 +65,6 @@ class Diagnosis:
         return {**self.__dict__, "search": {}}
 
 
-# The search budget: seconds of analysis on the reference machine (the project's 2-core VM, idle,
-# one diagnosis at a time) after which no new search is started; outputs come on top (a 20 s,
-# 10 kHz, two-channel recording must be diagnosed in under a minute there). It is counted as work,
-# not time (Fitter.spend: samples simulated, weighted by the kind of evaluation), WORK_PER_S units
-# per reference second, so that what is searched never depends on the load, on how many diagnoses
-# share the cores or on the machine: with a CPU-time budget two diagnoses on two cores (the
-# evaluation) ran out sooner than one alone and named less (rig-128: its delay)
-TIME_BUDGET_S = 40.0
-WORK_PER_S = 1.2e7
 # the nominal model re-fitted at the end has diverged when its training cost ends this many times
 # above the model it replaces [1]
 DIVERGED = 100.0

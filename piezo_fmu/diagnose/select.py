@@ -26,13 +26,15 @@ import math
 from dataclasses import replace
 
 from . import workers
+from .budget import round_stop
 from .catalogue import CATALOGUE, other_charge, plausible, propose, shape_size
 from .decide import (CONFIDENT, at_bound, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score, told_apart)
 from .drifts import drift_alternatives
 from .delays import refine_delay
 from .fit import Fitter, free_names, get_value, set_value, strip
-from .loopshape import (SHAPE_BESIDE_BEYOND, SHAPE_BEYOND, SHAPE_BEYOND_NOMINAL, SHAPE_BEYOND_REMOVED,
+from .loopshape import (LOOP_HELDOUT_BETA, LOOP_HELDOUT_Z, REFIT_WORSE, SHAPE_BESIDE_BEYOND, SHAPE_BEYOND,
+                        SHAPE_BEYOND_NOMINAL, SHAPE_BEYOND_REMOVED,
                         SHAPE_EXPLAINED, SHAPE_EXPLAINED_EACH, SHAPE_FURTHER_EXPLAINED, SHAPE_PARTIAL_BEYOND,
                         SHAPE_PARTIAL_EXPLAINED, SHAPE_PARTIAL_REMOVED, SHAPE_REMOVED, beyond_classical,
                         classical_named, further_from_nominal, loop_beside, shape_from_nominal, unnamed_loop)
@@ -46,16 +48,6 @@ from .stats import compare
 __all__ = ["ACCEPT", "CONFIDENT", "confidence", "full_residuals", "noise_levels", "put_in",
            "residual_sets", "select"]
 
-LOOP_HELDOUT_BETA = (0.8, 1.25)   # a finer loop the BIC refuses: the held-out share it must take...
-# ...at this many standard errors (then an ordinary refinement), as every candidate's held-out test
-# (at 5, rig-060's loop at z 3.1 and 3.2 stayed in the residual and hid the thermal drift beside it)
-LOOP_HELDOUT_Z = ACCEPT["z_heldout"]
-# a finer loop taken into the recalibration is fitted once more with it; a refit whose held-out rmse
-# on a channel exceeds the loop's own fit by this factor moved the weights and cells along directions
-# the training blocks do not fix, and the loop's fit stays (rig-064: 89.23 -> 89.16 in training
-# cost, x on held-out data 0.021 -> 0.095 um; of the 169 rig cases of draws 0 and 8 that refine a
-# loop, the names change in rig-064 alone, which is then right)
-REFIT_WORSE = 1.5
 
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
@@ -327,8 +319,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     sets_cur, _ = residual_sets(fitter, current)
     budget_note = None
     for rnd in range(max_rounds):
-        if fitter.out_of_time():
-            budget_note = f"time budget reached after {rnd} round(s): no further candidates searched"
+        if (budget_note := round_stop(fitter, rnd)) is not None:
             step(budget_note)
             break
         # no round stops because the residual looks like noise: a mechanism acting in a few short
@@ -358,14 +349,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             screened.append((q0 - q, name, start, alts))
         screened.sort(key=lambda s: -s[0])
         step(f"round {rnd + 1}: screening gains " + ", ".join(f"{n} {g / max(q0, 1e-300):.3g}" for g, n, _, _ in screened))
-        if rnd > 0 and fitter.out_of_time():
-            # the budget ran out during this round's screening (round 1 always fits): its first fit would
-            # be spent past it
-            # (rig-d14-095: round 4 began at 39.4 of 40 reference seconds, its screening took it to
-            # 48.2 and the further mode fitted then, failing as in round 3, to 57.5, a third of the
-            # diagnosis's time); what the round screened is reported, nothing is fitted
-            budget_note = (f"time budget reached during round {rnd + 1}'s screening: no candidate fitted"
-                           + (f" (the best screened: {screened[0][1]})" if screened and screened[0][0] > 0 else ""))
+        if (budget_note := round_stop(fitter, rnd, screened)) is not None:
             step(budget_note)
             break
         tried = []
