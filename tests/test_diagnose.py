@@ -1876,6 +1876,12 @@ def test_a_drift_beside_creep_is_checked_after_the_search_budget_is_spent():
                for r in res["rejected"])
 
 
+def _budget_case():
+    # synth case 34 (creep and a delay, 2 kHz): the search-budget tests' recording
+    case = make_case(34, ["creep", "time_delay"], "mid", ["chirp", "steps"], fs=2000.0)
+    return [{"name": "budget", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
+
+
 def test_a_later_round_whose_screening_spends_the_budget_fits_nothing():
     # synth case 34 (creep and a delay): round 3 begins at 9.58 reference seconds of work and its
     # screening ends at 10.43. With a budget of 10 the round began inside it; its fits would be spent
@@ -1886,8 +1892,7 @@ def test_a_later_round_whose_screening_spends_the_budget_fits_nothing():
     from piezo_fmu.diagnose.run import analyse
 
     assert budget.FITTED_ROUNDS == 2
-    case = make_case(34, ["creep", "time_delay"], "mid", ["chirp", "steps"], fs=2000.0)
-    raw = [{"name": "budget", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
+    raw = _budget_case()
     lines = []
     res = analyse(raw, time_budget_s=10.0, say=lines.append).result
     notes = [r["why"] for r in res["rejected"] if r["effect"] == "-"]
@@ -1905,8 +1910,7 @@ def test_the_first_rounds_fit_though_their_screening_spends_the_budget():
     # of the budget: rig-136's leakage, rig-d20-031's delay); the search ends after it
     from piezo_fmu.diagnose.run import analyse
 
-    case = make_case(34, ["creep", "time_delay"], "mid", ["chirp", "steps"], fs=2000.0)
-    raw = [{"name": "budget", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
+    raw = _budget_case()
     lines = []
     res = analyse(raw, time_budget_s=7.2, say=lines.append).result
     assert any("round 2: fitting thermal_drift" in line for line in lines)
@@ -2182,8 +2186,7 @@ def test_the_search_budget_is_work_so_a_busy_machine_searches_the_same(monkeypat
 
     from piezo_fmu.diagnose.run import analyse
 
-    case = make_case(34, ["creep", "time_delay"], "mid", ["chirp", "steps"], fs=2000.0)
-    raw = [{"name": "budget", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
+    raw = _budget_case()
     idle = analyse(raw, time_budget_s=4.0).result
     clock = iter(range(0, 10 ** 9, 1000))
     monkeypatch.setattr(time, "process_time", lambda: float(next(clock)))

@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import time
 
+from .budget import TIME_BUDGET_S
+
 __all__ = ["diagnose"]
 
 
 def diagnose(recordings, model=None, out=None, *, force=False, columns=None, scale=None, say=None,
-             figures=True, time_budget_s=40.0, replay_rate=None, threads=None):
+             figures=True, time_budget_s=TIME_BUDGET_S, replay_rate=None, threads=None):
     """Diagnose recording files against a model; write the results into ``out`` when given.
 
     Parameters
