@@ -20,10 +20,7 @@ paper's structure in ordinary ways. None of that is missing physics, so all of i
    amplifier clearly;
 5. the channels' **sampling lags** (whole samples, 0-2; with both channels recorded only their
    difference is ordinary: a lag common to both is the catalogue's ``time_delay``);
-6. the **strain saturation** kept only when it beats the model without it clearly (a saturation
-   level far above the stroke bends nothing the weights cannot, and where a fit settled along that
-   flat direction depended on the recording's last digits);
-7. a joint fit of everything kept, and the uncertainty of each value (:mod:`.uncertainty`).
+6. a joint fit of everything kept, and the uncertainty of each value (:mod:`.uncertainty`).
 
 "Clearly" is the selection's own yardstick: a BIC gain of more than ``ACCEPT['dbic']`` with the
 effective sample size.
@@ -31,7 +28,7 @@ effective sample size.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -57,8 +54,6 @@ class Recalibration:
     nominal_mode: tuple = (0.0, 0.0)          # the nominal (m, c)
     k_total: float = math.inf                 # the mechanics' stiffness k_a + k_f [N/m] (c / k [s]: a mode's lag)
     scale_tried_with: tuple | None = None     # the mechanisms in when the thresholds' scale was last tried
-    structure: Structure | None = None        # the nominal structure after the recalibration (the saturation
-                                              # left out when the recording does not ask for it)
 
 
 def _noise(fitter, p):
@@ -97,37 +92,8 @@ def recalibrate(fitter: Fitter, p_start, struct: Structure, step) -> Recalibrati
     step("recalibrating the voltage scale of the hysteresis thresholds")
     _threshold_scale(fitter, rc, struct, sat)
     revisit(fitter, rc, struct, step)
-    struct = _saturation(fitter, rc, struct, step)
-    rc.structure = struct
     rc.report["uncertainty"] = uncertainty(fitter, rc.params, struct, ordinary_names(fitter, rc, struct))
     return rc
-
-
-def _saturation(fitter, rc, struct, step):
-    """The strain saturation ``x = h / (1 + |h| / y_sat)`` kept only when the recording asks for
-    it: a fit without it (weights and every ordinary parameter re-fitted) that the saturation beats
-    by less than ``ACCEPT['dbic']`` leaves it out. Over a stroke of a few um a saturation of 50 um
-    or of 3000 um bends the loop by a few per cent or not at all, the PI weights bend to either, and
-    which one a fit settles at turned on the recording's last digits (rig-d19-007: 49 um from its
-    CSV, 3319 um from the arrays in memory, and the later fits followed). Returns the structure."""
-    if not struct.saturation:
-        return struct
-    step("recalibrating: does the recording need the strain saturation")
-    p = rc.params
-    flat = replace(struct, saturation=False)
-    q = p.copy()
-    q.y_sat = math.inf
-    scale = ["u_norm"] if rc.report.get("threshold_scale", {}).get("identified") else []
-    fr = _fit(fitter, q, flat, fitter.ordinary + scale, 10)
-    gain, _ = _gain(fitter, fr.params, p, 1)
-    if gain > ACCEPT["dbic"]:
-        rc.report["saturation"] = {"identified": True, "bic_gain": round(gain, 1)}
-        return struct
-    rc.params = fr.params
-    rc.report["saturation"] = {"identified": False, "bic_gain": round(gain, 1)}
-    rc.notes.append(f"the strain saturation is left out: the recording does not ask for it (BIC gain "
-                    f"{gain:.1f} <= {ACCEPT['dbic']:g} over the model without it)")
-    return flat
 
 
 def ordinary_names(fitter: Fitter, rc: Recalibration, struct: Structure):
@@ -176,32 +142,7 @@ def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
             # settled at the end of its range: not a mode the data see (a lag or a delay passing for one)
             drop(fitter, rc, "mode", why=f"settled at the end of its search range ({f:.4g} Hz, zeta {z:.3g})")
             rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 12).params
-    if rc.report.get("saturation", {}).get("identified") is False and not fitter.out_of_time():
-        changed |= _saturation_back(fitter, rc, struct, step)
     return changed
-
-
-def _saturation_back(fitter, rc, struct, step):
-    """A saturation left out by the recalibration, asked again with the mechanisms of ``struct``
-    in: a large missing mechanism can take the sag's place in the first fits (synth-1079: the
-    leakage; synth-1055: creep and a mode), and the device's own sag then shows beside it as a
-    loop shape. Put back (``rc.structure`` gets it) when it beats the model without it clearly."""
-    step("recalibrating: does the recording need the strain saturation now")
-    p = rc.params
-    q = p.copy()
-    q.y_sat = fitter.restart.get("y_sat", math.inf)
-    if not math.isfinite(q.y_sat):
-        return False
-    sag = replace(struct, saturation=True)
-    fr = fitter.fit(q, sag, free=free_names(sag, fitter.ordinary), max_nfev=10)
-    gain, _ = _gain(fitter, p, fr.params, 1)
-    if gain <= ACCEPT["dbic"]:
-        return False
-    rc.params = fr.params
-    rc.structure = replace(rc.structure, saturation=True)
-    rc.report["saturation"] = {"identified": True, "bic_gain": round(gain, 1), "asked_again": True}
-    rc.notes = [n for n in rc.notes if "strain saturation is left out" not in n]
-    return True
 
 
 def drop(fitter: Fitter, rc: Recalibration, item, why=""):

@@ -455,8 +455,7 @@ code{{background:#f6f6f6}}</style></head><body>
                 if v.get("determined") is False:
                     extra += f" (not determined: {v['why_undetermined']})"
                 # an offset's uncertainty is in its own unit (the key's suffix: x_offset_um)
-                shown = _param_text({k: v["value"]}) if v["value"] is not None else "none"
-                rows.append([e(k), e(shown) + e(extra),
+                rows.append([e(k), e(_param_text({k: v["value"]})) + e(extra),
                              f"{100 * unc:.2g} %" if unc is not None else
                              e(f"{_fmt(absolute)} {k.rsplit('_', 1)[-1]}") if absolute is not None else "-"])
             else:

@@ -536,10 +536,7 @@ def recal_summary(p, dev, dt, recal, fitter=None):
         "sensor_sensitivity_V_per_N": {"value": val(p.S, 6), "relative_uncertainty": lin.get("S")},
         "sensor_offset_V": {"value": val(p.off_s, 6), "uncertainty": lin.get("off_s")},
         "saturation_um": ({"value": val(p.y_sat, 6), "relative_uncertainty": unc.get("y_sat")}
-                          if math.isfinite(p.y_sat) else
-                          {"value": None, "identified": False, "why": "left out: the recording does not ask for "
-                           f"it (BIC gain {rep['saturation']['bic_gain']} of the model with it)"}
-                          if not rep.get("saturation", {}).get("identified", True) else None),
+                          if math.isfinite(p.y_sat) else None),
         "loop": {"value": f"{len(p.thresholds)} play operators"
                           + (f", {p.n_cells} KP cells" if p.n_cells else "")
                           + (" (refined: an ordinary loop difference, not named)"

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -173,7 +173,6 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     fitter.restart = {"tau": p.tau, "y_sat": p.y_sat}
     recal = recalibrate(fitter, p, struct_nom, step)
     p = recal.params
-    struct_nom = recal.structure
     scale = recal.report.get("threshold_scale", {})
     if scale.get("identified"):
         sources[("hysteresis", "u_norm")] = (f"re-fitted by piezo-fmu diagnose: the thresholds' voltage scale "
@@ -233,10 +232,6 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     noise, noise_ar = noise_levels(fitter, p_final)
     # the recalibrated nominal model: every ordinary item found (also those found after a finding,
     # and a refined loop), no mechanism; without findings it is the final model itself
-    if recal.structure.saturation and not struct_nom.saturation:      # put back during the selection
-        struct_nom = replace(struct_nom, saturation=True)
-    if recal.report.get("saturation", {}).get("identified") is False:
-        sources[("hysteresis", "saturation")] = "left out by piezo-fmu diagnose: the recording does not ask for it"
     struct_base = Structure(struct_nom.effects, struct_nom.creep_order, struct_nom.saturation,
                             struct_final.shape_extra if struct_final.refined else 0, struct_final.refined,
                             struct_nom.drift_warmup)

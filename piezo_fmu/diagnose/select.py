@@ -510,7 +510,6 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             again = revisit(current, struct)
             if again is not None:
                 current = again
-                struct = replace(struct, saturation=struct.saturation or bool(recal.structure and recal.structure.saturation))
         # the noise level from the better model's residual (less misfit passing for noise)
         noise.update(noise_levels(fitter, current)[0])
         sets_cur, _ = residual_sets(fitter, current)
