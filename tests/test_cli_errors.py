@@ -266,6 +266,8 @@ def test_a_reader_that_goes_away_ends_the_command_quietly():
     (["--draw", "-1"], ["--draw -1", "positive"]),
     (["--replay-rate", "0"], ["--replay-rate 0", "positive"]),
     (["--replay-rate", "inf"], ["--replay-rate inf", "positive"]),
+    (["--generator", "rig", "--noise-draw", "-2"], ["--noise-draw -2", "positive"]),
+    (["--noise-draw", "1"], ["--noise-draw", "rig's", "--generator rig"]),
 ])
 def test_the_evaluation_names_a_case_it_does_not_have(capsys, args, words):
     # a misspelt case name ran nothing and reported an empty table; now it is bad input

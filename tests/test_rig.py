@@ -287,6 +287,25 @@ def test_generation_is_deterministic(quick):
         assert json.dumps(again.truth, sort_keys=True) == json.dumps(recs[i].truth, sort_keys=True)
 
 
+def test_a_noise_redraw_changes_the_noise_and_nothing_else(quick):
+    """``noise_draw`` k >= 1: the same device, command and truth; the channels differ by two
+    independent realisations of the case's noise (difference rms sqrt(2) times each channel's
+    noise rms), and draw 1 is not draw 2."""
+    specs, recs = quick
+    i = next(k for k, r in enumerate(recs)
+             if set(r.truth["channels"]) == {"x", "us"} and r.truth["control"] != "probe_quantisation")
+    one, two = generate(specs[i], noise_draw=1), generate(specs[i], noise_draw=2)
+    assert np.array_equal(one.u, recs[i].u)
+    assert one.truth["noise_draw"] == 1 and recs[i].truth["noise_draw"] == 0
+    strip = lambda tr: json.dumps({k: v for k, v in tr.items() if k != "noise_draw"}, sort_keys=True)
+    assert strip(one.truth) == strip(recs[i].truth) == strip(two.truth)
+    params = recs[i].truth["params"]
+    for ch, key in (("x", "probe.noise_rms"), ("us", "sensor.noise_rms")):
+        d = getattr(one, ch) - getattr(recs[i], ch)
+        assert np.std(d) == pytest.approx(np.sqrt(2) * params[key]["value"], rel=0.1), ch
+        assert not np.array_equal(getattr(one, ch), getattr(two, ch))
+
+
 def test_csv_round_trip_without_truth(quick, tmp_path):
     _, recs = quick
     for rec in recs[:4] + [r for r in recs if r.truth["group"] == "one_channel"]:

@@ -181,9 +181,12 @@ def _log_file(logs, name):
     return None if logs is None else str(Path(logs) / f"{name}.log")
 
 
-def run_case(spec, ceiling=False, logs=None, replay_rate=None):
+def run_case(spec, ceiling=False, logs=None, replay_rate=None, noise_draw=0):
     """One synth case: generate, diagnose blind, score against the truth (``ceiling``: and put each
-    miss in afterwards, see :func:`_ceiling`; ``logs``: a folder for the diagnosis's progress log)."""
+    miss in afterwards, see :func:`_ceiling`; ``logs``: a folder for the diagnosis's progress log;
+    ``noise_draw``: the rig's only, 0 here)."""
+    if noise_draw:
+        raise ValueError("the synth cases have one noise realisation each (noise_draw is the rig's)")
     from .synth import make_case
 
     case = make_case(spec["seed"], spec["effects"], spec["noise"], spec["kinds"],
@@ -212,13 +215,14 @@ def rig_cases(quick=False, draw=0):
     return list(rig.cases(quick=quick, draw=draw))
 
 
-def run_rig_case(spec, ceiling=False, logs=None, replay_rate=None):
+def run_rig_case(spec, ceiling=False, logs=None, replay_rate=None, noise_draw=0):
     """One rig case: the rig generates it (its truth stays here), diagnose sees the recording only
     (``ceiling``: each miss is put in afterwards, see :func:`_ceiling`; ``logs``: a folder for the
-    diagnosis's progress log)."""
+    diagnosis's progress log; ``noise_draw`` k >= 1: the same device and truth with another
+    realisation of its noise, see :func:`piezo_fmu.rig.generate`)."""
     from .. import rig
 
-    rec = rig.generate(spec, twins=True)
+    rec = rig.generate(spec, twins=True, noise_draw=noise_draw)
     raw = [{"name": str(rec.truth.get("case_id", "case")), "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
     out = _diagnose(raw, list(rec.truth.get("mechanisms", [])) if ceiling else None, _log_file(logs, spec.case_id),
                     replay_rate)
@@ -253,19 +257,23 @@ def _case_line(r, done, n, t0):
 
 
 def study(generator, quick=False, jobs=None, scheduler=None, only=None, log=None, ceiling=False, cases_=None,
-          draw=0, logs=None, replay_rate=None):
+          draw=0, logs=None, replay_rate=None, noise_draw=0):
     """Run one generator's cases; returns ``(summary, results)``. ``only``: case groups to run;
     ``cases_``: case names to run; ``ceiling``: put each miss in afterwards (:func:`_ceiling`);
     ``draw``: 0 the established set, k >= 1 the same composition on fresh seeds; ``logs``: a folder
     each case's progress log is written to (``<case>.log``); ``replay_rate`` [Hz]: see
-    :func:`.run.analyse`."""
+    :func:`.run.analyse`; ``noise_draw`` k >= 1 (the rig only): each case with another realisation of
+    its noise (what a repeated measurement of the same device would give)."""
     from ..parallel import map_as_completed
 
     make, run = GENERATORS[generator]
     if logs:
         logs = Path(logs).resolve()
         logs.mkdir(parents=True, exist_ok=True)
-    run = functools.partial(run, ceiling=ceiling, logs=None if logs is None else str(logs), replay_rate=replay_rate)
+    if noise_draw and generator != "rig":
+        raise ValueError(f"a noise redraw is the rig's: the {generator} cases have one noise realisation each")
+    run = functools.partial(run, ceiling=ceiling, logs=None if logs is None else str(logs), replay_rate=replay_rate,
+                            noise_draw=noise_draw)
     specs = make(quick, draw)
     if only:
         keep = set(only)
@@ -309,6 +317,10 @@ def main(argv=None):
                                                  "decision) to DIR/<case>.log (on the machine that runs the case)")
     ap.add_argument("--replay-rate", type=float, default=None, metavar="HZ",
                     help="replay recordings sampled slower with internal steps up to HZ (diagnose --replay-rate)")
+    ap.add_argument("--noise-draw", type=int, default=0, metavar="K",
+                    help="the rig only: 0 (default) each case's own noise; K >= 1 the same devices and truth "
+                         "with another realisation of their noise (how much the outcome of a case depends "
+                         "on the noise it happened to get)")
     ap.add_argument("--out", help="write all results as JSON")
     ap.add_argument("--markdown", help="write the tables as markdown")
     a = ap.parse_args(argv)
@@ -316,6 +328,11 @@ def main(argv=None):
         ap.error(f"--replay-rate {a.replay_rate}: a positive rate in Hz")
     if a.draw < 0:
         ap.error(f"--draw {a.draw}: a draw is 0 (the established sets) or a positive number")
+    if a.noise_draw < 0:
+        ap.error(f"--noise-draw {a.noise_draw}: 0 (each case's own noise) or a positive number")
+    if a.noise_draw and a.generator != "rig":
+        ap.error("--noise-draw is the rig's (the synth cases have one noise realisation each): "
+                 "add --generator rig")
     gens = ("rig", "synth") if a.generator == "both" else (a.generator,)
     only = [g for g in a.only.split(",") if g] or None
     names = [c for c in a.cases.split(",") if c] or None
@@ -331,7 +348,8 @@ def main(argv=None):
             s, results = study(gen, a.quick, a.jobs, a.scheduler, only,
                                log=lambda line: print(line, file=sys.stderr, flush=True), ceiling=a.ceiling,
                                cases_=[n for n in names if n.startswith(f"{gen}-")] if names else None,
-                               draw=a.draw, logs=a.logs, replay_rate=a.replay_rate)
+                               draw=a.draw, logs=a.logs, replay_rate=a.replay_rate,
+                               noise_draw=a.noise_draw)
         except ValueError as exc:
             ap.error(str(exc))
         report[gen] = {"summary": s, "results": results}

@@ -22,10 +22,11 @@ Public API
 ----------
 ``cases(quick=False)``
     The evaluation set: a list of ``CaseSpec`` (deterministic; 185 cases, or 16 short ones).
-``generate(spec, twins=False)``
+``generate(spec, twins=False, noise_draw=0)``
     Simulate one case: a ``RigRecording`` with ``time`` [s], ``u`` [V], ``x`` [um] and/or
     ``us`` [V] (an absent channel is None) and ``truth`` (with ``twins``, also each present
-    delay's and further mode's closest *ordinary twin*, ``twins.py``).
+    delay's and further mode's closest *ordinary twin*, ``twins.py``; with ``noise_draw`` k >= 1,
+    the same device and truth with another realisation of its noise: a repeated measurement).
 ``write_csv(rec, path)``
     ``time,u,x,us`` (present channels), one ``#`` line of units, nothing of the truth.
 

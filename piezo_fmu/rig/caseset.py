@@ -324,9 +324,10 @@ def _rate_and_duration(rng, spec: CaseSpec, kinds, names):
     return fs, duration
 
 
-def _unit_noise(spec: CaseSpec, attempt: int, n: int, ar: float) -> dict:
-    """The case's noise sequences at unit rms (scaled by each channel's sigma when used)."""
-    rng = np.random.default_rng([spec.seed, attempt, 99])
+def _unit_noise(spec: CaseSpec, attempt: int, n: int, ar: float, noise_draw: int = 0) -> dict:
+    """The case's noise sequences at unit rms (scaled by each channel's sigma when used);
+    ``noise_draw`` k >= 1: another realisation of the same noise process."""
+    rng = np.random.default_rng([spec.seed, attempt, 99] + ([noise_draw] if noise_draw else []))
     return {ch: noise(rng, n, 1.0, ar) for ch in ("x", "us")}
 
 
@@ -342,7 +343,8 @@ def _fail(why: list | None, reason: str) -> None:
         why.append(reason)
 
 
-def _attempt(spec: CaseSpec, attempt: int, why: list | None = None, twins: bool = False) -> RigRecording | None:
+def _attempt(spec: CaseSpec, attempt: int, why: list | None = None, twins: bool = False,
+             noise_draw: int = 0) -> RigRecording | None:
     rng = np.random.default_rng([spec.seed, attempt])
     channels = ["x", "us"] if spec.channels == "both" else [spec.channels]
     present = list(spec.mechanisms) + ([spec.control] if spec.control else [])
@@ -435,14 +437,16 @@ def _attempt(spec: CaseSpec, attempt: int, why: list | None = None, twins: bool 
     if base_fit > BASE_MISFIT:           # the noise was lowered too far for the base loop
         return _fail(why, 'base loop: noise lowered too far')
     return _finish(spec, attempt, sim, segments, eff, full, vis, aff, channels, shape_fit,
-                   base_fit, dropped, twins)
+                   base_fit, dropped, twins, noise_draw)
 
 
 def _finish(spec, attempt, sim, segments, eff, full, vis, aff, channels, shape_fit,
-            base_fit, dropped, twins=False) -> RigRecording:
+            base_fit, dropped, twins=False, noise_draw=0) -> RigRecording:
     plant, u = sim.plant, sim.u
     n = u.size
-    unit_noise = _unit_noise(spec, attempt, n, plant.noise_colour)
+    # the calibration above used draw 0's noise (the probe's quantisation only): a redraw changes
+    # the noise the recording carries, nothing the truth says
+    unit_noise = _unit_noise(spec, attempt, n, plant.noise_colour, noise_draw)
     rec = {}
     sig = {"x": plant.sigma_x, "us": plant.sigma_us}
     for ch in ("x", "us"):
@@ -464,7 +468,8 @@ def _finish(spec, attempt, sim, segments, eff, full, vis, aff, channels, shape_f
     present_mechs = [m for m in CATALOGUE if m in spec.mechanisms]
     hidden_mechs = [m for m in CATALOGUE if m in spec.hidden and m not in dropped]
     truth = {
-        "case_id": spec.case_id, "seed": spec.seed, "attempt": attempt, "group": spec.group,
+        "case_id": spec.case_id, "seed": spec.seed, "attempt": attempt, "noise_draw": noise_draw,
+        "group": spec.group,
         "mechanisms": present_mechs, "hidden": hidden_mechs, "control": spec.control,
         "channels": list(channels), "fs": plant.fs, "duration": n / plant.fs, "n_samples": n,
         "visibility": {e: {c: round(v, 4) for c, v in d.items()} for e, d in vis.items()},
@@ -484,7 +489,7 @@ def _finish(spec, attempt, sim, segments, eff, full, vis, aff, channels, shape_f
                         us=rec["us"] if "us" in channels else None, truth=truth)
 
 
-def generate(spec: CaseSpec, twins: bool = False) -> RigRecording:
+def generate(spec: CaseSpec, twins: bool = False, noise_draw: int = 0) -> RigRecording:
     """Simulate one case (deterministic: the same spec gives identical arrays).
 
     Parameters
@@ -493,6 +498,10 @@ def generate(spec: CaseSpec, twins: bool = False) -> RigRecording:
     twins : bool
         Also measure each present delay's and further mode's closest ordinary twin
         (``truth["ordinary_twins"]``, see :func:`.twins.ordinary_twins`; seconds per case).
+    noise_draw : int
+        0: the case's own noise; k >= 1: another realisation of the same noise process (same
+        rms, colour and everything else: the same device and truth), to measure how much a
+        diagnosis depends on the noise it happened to get.
 
     Returns
     -------
@@ -500,7 +509,7 @@ def generate(spec: CaseSpec, twins: bool = False) -> RigRecording:
         ``time`` [s], ``u`` [V], ``x`` [um] and/or ``us`` [V], and ``truth``.
     """
     for attempt in range(12):
-        rec = _attempt(spec, attempt, twins=twins)
+        rec = _attempt(spec, attempt, twins=twins, noise_draw=noise_draw)
         if rec is not None:
             return rec
     raise RuntimeError(f"case {spec.case_id}: no draw met the visibility requirements")
