@@ -184,9 +184,7 @@ def _log_file(logs, name):
 def run_case(spec, ceiling=False, logs=None, replay_rate=None, noise_draw=0):
     """One synth case: generate, diagnose blind, score against the truth (``ceiling``: and put each
     miss in afterwards, see :func:`_ceiling`; ``logs``: a folder for the diagnosis's progress log;
-    ``noise_draw``: the rig's only, 0 here)."""
-    if noise_draw:
-        raise ValueError("the synth cases have one noise realisation each (noise_draw is the rig's)")
+    ``noise_draw``: the rig's only, 0 here: :func:`study` refuses another)."""
     from .synth import make_case
 
     case = make_case(spec["seed"], spec["effects"], spec["noise"], spec["kinds"],
