@@ -15,8 +15,8 @@ from .engine import predict
 from .fit import Fitter
 from .stats import psd
 
-__all__ = ["ACCEPT", "full_residuals", "heldout_rmse", "hold_runs", "residual_peaks", "residual_sets",
-           "spectral_peaks", "taken_in_holds"]
+__all__ = ["ACCEPT", "SLOW_HELDOUT_MIN", "full_residuals", "heldout_rmse", "hold_runs", "residual_peaks",
+           "residual_sets", "spectral_peaks", "taken_in_holds"]
 
 ACCEPT = {
     "p_lr": 1e-3,            # likelihood-ratio test on training rows (effective sample size)
