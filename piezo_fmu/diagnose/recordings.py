@@ -47,8 +47,8 @@ from ..errors import UserError
 from ..recording import read_csv_table
 from .model_io import Recording
 
-__all__ = ["HELDOUT_EVERY", "INTERNAL_RATE", "JUMP", "N_BLOCKS", "RESPONSE_S", "activity", "after_jumps", "blocks",
-           "internal_steps", "load_recordings", "make_recordings"]
+__all__ = ["HELDOUT_EVERY", "INTERNAL_RATE", "JUMP", "LARGEST", "N_BLOCKS", "RESPONSE_S", "activity",
+           "after_jumps", "blocks", "internal_steps", "load_recordings", "make_recordings"]
 
 N_BLOCKS = 64
 HELDOUT_EVERY = 4
