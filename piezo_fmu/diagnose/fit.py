@@ -107,11 +107,7 @@ def strip(p: Params, struct: Structure, nominal_thresholds=None) -> Params:
 # names of the nonlinear parameters of each mechanism (all positive, fitted in log coordinates)
 def free_names(struct: Structure, ordinary=("tau",)):
     """Nonlinear parameters of ``struct``: the ordinary ones named in ``ordinary`` (the amplifier's
-    lags ``tau``/``tau2``, the first mode ``mech_f``/``mech_zeta``) and the mechanisms' own.
-
-    Known fault, kept for now: ``y_sat`` given in ``ordinary`` (the recalibration's memory and
-    scale fits) appears twice, two identical Jacobian columns; deduplicating re-routes cases (see
-    docs/diagnose-history.md, stop 72)."""
+    lags ``tau``/``tau2``, the first mode ``mech_f``/``mech_zeta``) and the mechanisms' own."""
     names = list(ordinary) + (["y_sat"] if struct.saturation else [])
     for j in range(struct.creep_order):
         names += [f"creep_g{j}", f"creep_tau{j}"]

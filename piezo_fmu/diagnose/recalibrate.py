@@ -347,6 +347,8 @@ def _history(fitter, rc, struct, sat):
         return False
     q = p.copy()
     q.prep = top
+    # (known fault, kept for now: with ``sat`` in the ordinary list ``free_names`` frees y_sat twice,
+    # two identical Jacobian columns; deduplicating re-routes cases: docs/diagnose-history.md, stop 72)
     fr = _fit(fitter, q, struct, ["tau"] + sat, 6)
     gain, _ = _gain(fitter, p, fr.params, 1)
     if gain > ACCEPT["dbic"]:
