@@ -105,3 +105,19 @@ def fresh_processes(tmp_path):
                                           check=True).stdout) for _ in range(n)]
     run.cache = tmp_path
     return run
+
+
+@pytest.fixture
+def spy(monkeypatch):
+    """``spy(module, name)``: ``module.name`` keeps working for the rest of the test, and the list
+    returned holds what each call of it returned, in order."""
+    def watch(module, name):
+        seen = []
+        original = getattr(module, name)
+
+        def recorded(*args, **kwargs):
+            seen.append(original(*args, **kwargs))
+            return seen[-1]
+        monkeypatch.setattr(module, name, recorded)
+        return seen
+    return watch

@@ -1822,7 +1822,7 @@ def test_a_current_limit_a_slow_record_sees_on_two_samples_is_named(monkeypatch)
     assert any("never binds" in r["why"] for r in res["rejected"] if r["effect"] == "amplifier_current_limit")
 
 
-def test_a_drift_is_checked_on_the_displacement_alone_without_losing_the_joint_fit(monkeypatch):
+def test_a_drift_is_checked_on_the_displacement_alone_without_losing_the_joint_fit(spy):
     # rig-d9-152: a thermal drift alone (held-out x 0.097 -> 0.054 um, beta 0.97 at z 9.7). The
     # check that the drift is the displacement's own re-solved the fit on x alone with 2 Gauss-Newton
     # steps of the saturation; the re-solve landed at x rms 0.200 um where the joint fit has 0.053,
@@ -1833,9 +1833,7 @@ def test_a_drift_is_checked_on_the_displacement_alone_without_losing_the_joint_f
 
     rec, raw = _rig_recording("rig-d9-152")
     assert rec.truth["mechanisms"] == ["thermal_drift"]
-    shares = []
-    own = catalogue._own_channel_share
-    monkeypatch.setattr(catalogue, "_own_channel_share", lambda *a: shares.append(own(*a)) or shares[-1])
+    shares = spy(catalogue, "_own_channel_share")
     res = analyse(raw).result
     assert res["final"]["effects"] == ["thermal_drift"], (res["candidates"], res["rejected"])
     assert shares and min(shares) > 0.5, shares
@@ -1860,7 +1858,7 @@ def test_leakage_is_found_on_a_record_that_starts_under_a_force():
     assert res["final"]["rmse"]["us"] < 0.5 * res["baseline"]["rmse"]["us"]
 
 
-def test_leakage_is_weighed_against_an_offset_trend_away_from_the_jumps(monkeypatch):
+def test_leakage_is_weighed_against_an_offset_trend_away_from_the_jumps(spy):
     # rig-d21-165: leakage alone on a KP device at 2590 Hz (21 noise rms in the sensor channel).
     # Over all training rows the leakage left 0.00537 V of structured sensor residual and a
     # quadratic drift of the sensor offset in its place 0.00598 V: "as well" (within half the
@@ -1873,9 +1871,7 @@ def test_leakage_is_weighed_against_an_offset_trend_away_from_the_jumps(monkeypa
 
     rec, raw = _rig_recording("rig-d21-165")
     assert rec.truth["mechanisms"] == ["sensor_leakage"]
-    seen = []
-    own = catalogue._offset_trend_alternative
-    monkeypatch.setattr(catalogue, "_offset_trend_alternative", lambda *a: seen.append(own(*a)) or seen[-1])
+    seen = spy(catalogue, "_offset_trend_alternative")
     res = analyse(raw).result
     assert res["final"]["effects"] == ["sensor_leakage"], (res["candidates"], res["rejected"])
     alt, fit = seen[-1]          # [V] structured sensor residual: the quadratic's, the leakage's

@@ -160,7 +160,7 @@ def _rig(case_id):
     return rec, [{"name": case_id, "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
 
 
-def test_a_switching_band_the_recalibration_bent_in_is_named(monkeypatch):
+def test_a_switching_band_the_recalibration_bent_in_is_named(monkeypatch, spy):
     # rig-108 (533 Hz): a PI device on other thresholds with a band of domains switching at fixed
     # voltages. The recalibrated PI (partial sums of its weights positive, one weight negative) bends
     # part of the band in; the finer loop then removes 2.4 noise rms more, under the 3 a name took
@@ -170,9 +170,7 @@ def test_a_switching_band_the_recalibration_bent_in_is_named(monkeypatch):
 
     rec, raw = _rig("rig-108")
     assert rec.truth["mechanisms"] == ["hysteresis_shape"]
-    seen = []
-    measure = select.beyond_classical
-    monkeypatch.setattr(select, "beyond_classical", lambda *a: seen.append(measure(*a)) or seen[-1])
+    seen = spy(select, "beyond_classical")
     res = analyse(raw).result
     assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
     assert len(seen) == 1 and max(seen[0].values()) >= select.SHAPE_BEYOND
