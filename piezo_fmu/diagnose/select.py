@@ -56,8 +56,11 @@ FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
 # 0.60 ms delay beside the 841 Hz mode; without both the mode's ringing was lost and the delay
 # screened worse than the recalibrated model). Not the sampling lags alone: a delay moves both
 # channels, their lags' difference is another thing (without them alone a delay of 0.53 ms was
-# named on rig-149 in the place of a 0.4 ms second stage and the sensor's one-sample lag)
-ALONE = {"time_delay": ("order",)}
+# named on rig-149 in the place of a 0.4 ms second stage and the sensor's one-sample lag). The
+# first mode alone: a one-sample delay the recalibration drew as a 131 Hz mode at damping 0.25
+# beside a second stage (rig-d22-117, 494 Hz; the device's own mode at 554 Hz) is the second
+# stage kept and the mode gone (see also :data:`.delays.SPLIT_SHARES`)
+ALONE = {"time_delay": ("order", "mode")}
 SAG_DRAWN = 0.25     # a recalibrated sag below this share of the nominal one was drawn in (SLOW: both starts)
 
 
