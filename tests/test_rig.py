@@ -342,7 +342,8 @@ def test_pi9_misfit_is_zero_for_a_nine_operator_loop_and_matches_brute_force():
 def test_an_ordinary_twin_is_measured_with_the_rigs_own_equations():
     # a delay of whole samples on the one recorded channel is that channel's sampling lag (the
     # same record); a delay on two channels is not a slower amplifier (rig-001: 5.5 noise rms
-    # from the best one); a further mode at 587 Hz beside a first mode at 6.6 kHz, far above the
+    # from the best slower output stage, 4.1 from the best with the internal stage slower too), but
+    # beside a one-stage amplifier a one-sample delay may be a second stage (rig-d22-020: 0.61); a further mode at 587 Hz beside a first mode at 6.6 kHz, far above the
     # 1.56 kHz Nyquist frequency, is a first mode at 587 Hz (rig-d8-037: 0.37 noise rms)
     from piezo_fmu.rig.twins import TWIN_SAME
 
@@ -359,6 +360,12 @@ def test_an_ordinary_twin_is_measured_with_the_rigs_own_equations():
     assert not got["same"] and got["distance"] > TWIN_SAME, got
     # the twin's lag was searched towards the delay it stands for
     assert got["amp_tau_s"] > two["params"]["amplifier.tau_output"]["value"], got
+    spec = next(s for s in cases(draw=22) if s.case_id == "rig-d22-020")
+    t = generate(spec, twins=True).truth
+    assert t["params"]["amplifier.order"]["value"] == 1
+    got = t["ordinary_twins"]["time_delay"]
+    assert got["same"] and got["distance"] < 1.0 and "a second stage" in got["twin"], got
+    assert got["amp_tau2_s"] == pytest.approx(t["params"]["time_delay.delay"]["value"], rel=0.6)
     spec = next(s for s in cases(draw=8) if s.case_id == "rig-d8-037")
     t = generate(spec, twins=True).truth
     p = t["params"]
