@@ -284,33 +284,12 @@ def _mode(fitter, rc, struct, sat):
         q = best.params
         fitter.ordinary = fitter.ordinary + ["mech_f", "mech_zeta"]
         rc.report["first_mode"] = {"identified": True, "bic_gain": round(gain, 1)}
-        rc.params = _lag_rescanned(fitter, q, struct)
+        rc.params = q
         rc.report["pickoff"] = {"value": q.pick, "identified": q.pick != "stack"}
         rc.notes = [n for n in rc.notes if "first mode" not in n]
         return True
     why = ("at the end of its search range" if edge else f"not visible in this recording (BIC gain {gain:.1f})")
     return _mode_not_identified(rc, p, why, f_nom, z_nom)
-
-
-LAG_RESCAN = (5e-5, 1e-2, 12)     # [s, s, points] the log grid the lag is re-scanned on with a mode in
-
-
-def _lag_rescanned(fitter, p, struct):
-    """``p`` (a first mode just put in) with the amplifier lag re-scanned on :data:`LAG_RESCAN`
-    (both stages scaled together, the weights re-solved at each point) and the best point fitted
-    again when it beats ``p``: with a lightly damped mode in, the cost has a minimum for each
-    phase at which the lag lets a step excite the ringing, and the lag fitted before the mode
-    was in sits in whichever was nearest (rig-d22-056: 1.94 ms, cost 24136, against the device's
-    0.57 ms and its minimum near 0.6 ms, 11775)."""
-    lo, hi, n = LAG_RESCAN
-    qs = [with_params(p, tau=t * p.tau / (p.tau + p.tau2), tau2=t * p.tau2 / (p.tau + p.tau2))
-          for t in np.exp(np.linspace(math.log(lo), math.log(hi), n))]
-    costs = [float(r @ r) for r in (fitter.varpro(q, struct) for q in qs)]
-    i = int(np.argmin(costs))
-    if costs[i] >= fitter.cost(p):
-        return p
-    fr = _fit(fitter, qs[i], struct, fitter.ordinary, 10)
-    return fr.params if fr.cost < fitter.cost(p) else p
 
 
 def _mode_picks(fitter):
