@@ -108,7 +108,7 @@ def ordinary_twins(sim: Simulator, effects: Effects, full: dict, channels) -> di
         # the amplifier's order is ordinary physics too: a second stage (or the internal stage
         # slower) of about the delay, the output stage searched beside it (rig-d22-020: a 0.35 ms
         # delay beside a one-stage 1.15 ms amplifier lies 5.0 noise rms from the best slower stage
-        # and 0.66 from stages of 1.04 + 0.46 ms)
+        # and 0.61 from stages of 0.96 + 0.53 ms)
         for k in SECOND_STAGE:
             tau2 = plant.amp_tau2 + k * delay
             d2, tau = _lag_searched(replace(plant, amp_tau2=tau2), u, rest, full, channels,
