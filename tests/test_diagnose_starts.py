@@ -104,4 +104,3 @@ def test_a_delay_a_moved_mode_and_a_second_stage_stood_in_for_is_named(monkeypat
     monkeypatch.undo()
     monkeypatch.setitem(select.ALONE, "time_delay", ("order",))
     assert analyse(raw).result["final"]["effects"] == []
-

@@ -343,8 +343,9 @@ def test_an_ordinary_twin_is_measured_with_the_rigs_own_equations():
     # a delay of whole samples on the one recorded channel is that channel's sampling lag (the
     # same record); a delay on two channels is not a slower amplifier (rig-001: 5.5 noise rms
     # from the best slower output stage, 4.1 from the best with the internal stage slower too), but
-    # beside a one-stage amplifier a one-sample delay may be a second stage (rig-d22-020: 0.61); a further mode at 587 Hz beside a first mode at 6.6 kHz, far above the
-    # 1.56 kHz Nyquist frequency, is a first mode at 587 Hz (rig-d8-037: 0.37 noise rms)
+    # beside a one-stage amplifier a one-sample delay may be a second stage (rig-d22-020: 0.61); a
+    # further mode at 587 Hz beside a first mode at 6.6 kHz, far above the 1.56 kHz Nyquist
+    # frequency, is a first mode at 587 Hz (rig-d8-037: 0.37 noise rms)
     from piezo_fmu.rig.twins import TWIN_SAME
 
     specs = {s.case_id: s for s in cases()}
