@@ -19,13 +19,13 @@ import math
 from .catalogue import propose
 from .decide import noise_levels, score
 from .fit import free_names, get_value, strip
-from .recalibrate import ITEM_K, ITEM_PARAMS, adopt_mode, drop, mode_at
+from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, adopt_mode, drop, mode_at
 from .residuals import ACCEPT, heldout_rmse, residual_sets
 from .stats import compare
 
 __all__ = ["CREEP_BEFORE_DRIFT", "MODE_EVIDENCE", "ORDINARY_ADOPTIONS", "SHAPE_LAST", "beside_named_mode",
            "creep_before_drift", "delay_or_lag", "drift_both", "drift_or_creep", "ordinary_found",
-           "physics_before_shape", "resonance_or_mode"]
+           "physics_before_shape", "resonance_or_mode", "sampling_lag_rival"]
 
 SHAPE_LAST = 0.8           # a physical mechanism explaining this share of what a finer loop does goes first
 
@@ -258,3 +258,14 @@ def beside_named_mode(struct, screened, tried):
             or any(t["passed"] or t["name"] == "time_delay" for t in tried):
         return []
     return [s for s in screened if s[1] == "time_delay" and s[0] <= 0]
+
+
+def sampling_lag_rival(fitter, p):
+    """True when the delay of ``p`` is also a sampling lag of the one recorded channel: every
+    recording has one channel and the delay is 1..``MAX_LAG`` whole samples (the recalibration looks
+    for sampling lags only with two channels, where they are told from a latency by their
+    difference)."""
+    if len({c for r in fitter.recs for c in r.channels()}) != 1 or p.delay <= 0:
+        return False
+    n = p.delay / fitter.dt
+    return abs(n - round(n)) < 1e-6 and 1 <= round(n) <= MAX_LAG

@@ -38,10 +38,11 @@ from .loopshape import (LOOP_HELDOUT_BETA, LOOP_HELDOUT_Z, REFIT_WORSE, SHAPE_BE
                         SHAPE_EXPLAINED, SHAPE_EXPLAINED_EACH, SHAPE_FURTHER_EXPLAINED, SHAPE_PARTIAL_BEYOND,
                         SHAPE_PARTIAL_EXPLAINED, SHAPE_PARTIAL_REMOVED, SHAPE_REMOVED, beyond_classical,
                         classical_named, further_from_nominal, loop_beside, shape_from_nominal, unnamed_loop)
-from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, drop, present, without
+from .recalibrate import ITEM_K, ITEM_PARAMS, drop, present, without
 from .residuals import ACCEPT, full_residuals, heldout_rmse, residual_peaks, residual_sets
 from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, creep_before_drift, delay_or_lag, drift_both,
-                     drift_or_creep, ordinary_found, physics_before_shape, resonance_or_mode)
+                     drift_or_creep, ordinary_found, physics_before_shape, resonance_or_mode,
+                     sampling_lag_rival)
 from .starts import swapped_mode
 from .stats import compare
 
@@ -61,18 +62,12 @@ FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
 # beside a second stage (rig-d22-117, 494 Hz; the device's own mode at 554 Hz) is the second
 # stage kept and the mode gone (see also :data:`.delays.SPLIT_SHARES`)
 ALONE = {"time_delay": ("order", "mode")}
+# a physical candidate that passed in a round a finer loop won is fitted again in the next round
+# whatever its screening: the cells bend to part of its residual (a delay's phase lag is a wider
+# loop on a slow drive) and from the model with them its screening loses while its fit does not
+# (rig-141, a delay beside a loop shape: screened -0.07 after the shape; fitted it passes)
+REFIT_BESIDE_SHAPE = True
 SAG_DRAWN = 0.25     # a recalibrated sag below this share of the nominal one was drawn in (SLOW: both starts)
-
-
-def sampling_lag_rival(fitter, p):
-    """True when the delay of ``p`` is also a sampling lag of the one recorded channel: every
-    recording has one channel and the delay is 1..``MAX_LAG`` whole samples (the recalibration looks
-    for sampling lags only with two channels, where they are told from a latency by their
-    difference)."""
-    if len({c for r in fitter.recs for c in r.channels()}) != 1 or p.delay <= 0:
-        return False
-    n = p.delay / fitter.dt
-    return abs(n - round(n)) < 1e-6 and 1 <= round(n) <= MAX_LAG
 
 
 def coupled(fitter, name, struct, s_new):
@@ -320,8 +315,9 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     findings, rejected = [], []
     adopted = 0
     sets_cur, _ = residual_sets(fitter, current)
-    budget_note = None
+    budget_note, owed = None, []        # owed: physical candidates that passed in a round a finer loop won
     for rnd in range(max_rounds):
+        due, owed = owed, []
         if (budget_note := round_stop(fitter, rnd)) is not None:
             step(budget_note)
             break
@@ -375,6 +371,12 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                  "held (a delay moves its phase): fitted as well")
             tried.append(_try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cctx,
                               recal, step, rnd))
+        for gain, name, start, alts in screened if REFIT_BESIDE_SHAPE else ():
+            if name in due and name not in {t["name"] for t in tried} and not fitter.out_of_time():
+                step(f"round {rnd + 1}: {name} passed beside the finer loop last round: fitted again "
+                     f"(screened {gain / max(q0, 1e-300):.3g})")
+                tried.append(_try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cctx,
+                                  recal, step, rnd))
         if not any(t["passed"] for t in tried):
             better = None if adopted >= ORDINARY_ADOPTIONS else ordinary_found(fitter, tried, current, struct,
                                                                                   p_base, sets_cur, noise)
@@ -407,6 +409,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         best = max((t for t in tried if t["passed"]), key=lambda t: score(t["cmp"], t["name"]))
         best = physics_before_shape(best, tried, step, rnd)
         best = creep_before_drift(best, tried, struct, step, rnd)
+        owed = [t["name"] for t in tried if t["passed"] and best["name"] == "hysteresis_shape" != t["name"]]
         as_mode = resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd)
         as_lag = None if as_mode is not None else delay_or_lag(fitter, best, struct, p_base, recal, step, rnd)
         if as_mode is not None or as_lag is not None:
