@@ -32,7 +32,7 @@ S_TOL = 1e-9       # relative change of the sensor gain at which the alternation
 # block 0.013 um and the shape passes). Set 2026-12-05 (stop 74) from 1e-6, 1e-5 and 1e-4 on the
 # cases 1e-4 changed: 1e-4 also bent the screening of true shapes (rig-d22-167's finer loop
 # screened worse than the loop without cells) and drew a false drift and a false mode beside
-# the shapes of rig-d22-138 and 164; 1e-5 the mode
+# rig-d22-138's creep and 164's shape; 1e-5 still the mode. 1e-6 kept the gains without them
 CELL_RIDGE = 1e-6
 AS_ROUNDS = 8      # active-set rounds of the bounded solve before it falls back to bvls
 
