@@ -454,7 +454,7 @@ WEAK = 0.25
 # established set (stop 73's logs): the candidates removing less were a creep on two clean
 # devices (0.14 and 0.15 x, confidence 0.26 and 0.39: rig-d22-018, 157) and a drift beside a
 # named creep (0.28 x); every true candidate removed 0.69 x or more on a channel (rig-d22-057's
-# drift), the control rig-135's creep 0.70 x
+# drift), the control rig-135's creep 1.6 x (it stays counted)
 FAINT_REMOVED = 0.5
 
 
