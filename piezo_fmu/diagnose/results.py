@@ -20,8 +20,8 @@ from .recordings import HELDOUT_EVERY, JUMP, RESPONSE_S
 from .select import ACCEPT, CONFIDENT
 from .stats import improvement_band, input_xcorr, tau_int, whiteness
 
-__all__ = ["assemble", "below_noise", "describe_parameters", "file_predictions", "localise", "nrmse", "rmse_as_given",
-           "to_model"]
+__all__ = ["assemble", "below_noise", "describe_parameters", "file_predictions", "localise", "nrmse",
+           "rmse_as_given", "to_model"]
 
 
 def rmse_as_given(recs, dev, p):
