@@ -121,3 +121,17 @@ def spy(monkeypatch):
         monkeypatch.setattr(module, name, recorded)
         return seen
     return watch
+
+
+@pytest.fixture
+def rig_diagnosis():
+    """``rig_diagnosis(case_id)``: the diagnosis result of one rig case (``rig-123`` of draw 0,
+    ``rig-d22-174`` of draw 22) analysed with the defaults, as the evaluation runs it."""
+    def run(case_id):
+        from piezo_fmu import rig
+        from piezo_fmu.diagnose.run import analyse
+
+        draw = int(case_id.split("-")[1][1:]) if case_id.count("-") == 2 else 0
+        rec = rig.generate(next(s for s in rig.cases(draw=draw) if s.case_id == case_id))
+        return analyse([{"name": case_id, "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]).result
+    return run

@@ -29,7 +29,8 @@ def _explained(after_share, noise_est, bound, monkeypatch):
     t = np.arange(n) / 400.0
     noise = 0.01 * rng.standard_normal(n)                 # [um] the true noise
     misfit = 0.03 * np.sign(np.sin(2 * np.pi * 3.0 * t))  # [um] a structured residual, 3 x the noise
-    ch = compare(_sets(noise + misfit), _sets(noise + after_share * misfit), 2, {"x": noise_est})["channels"]["x"]
+    cmp = compare(_sets(noise + misfit), _sets(noise + after_share * misfit), 2, {"x": noise_est})
+    ch = cmp["channels"]["x"]
     return ch["explained"], ch["explained_heldout"]
 
 
@@ -56,22 +57,14 @@ def test_a_small_gain_does_not_lower_the_noise_level(monkeypatch):
     assert explained > 0.5, explained
 
 
-def _rig_diagnosis(case_id):
-    from piezo_fmu import rig
-    from piezo_fmu.diagnose.run import analyse
-
-    draw = int(case_id.split("-")[1][1:])
-    rec = rig.generate(next(s for s in rig.cases(draw=draw) if s.case_id == case_id))
-    return analyse([{"name": case_id, "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]).result
-
-
 @pytest.mark.parametrize("bound", [RULE, 0.0], ids=["rule", "rule-before"])
-def test_a_delay_at_a_low_sample_rate_is_named_through_a_noise_level_too_high(monkeypatch, bound):
+def test_a_delay_at_a_low_sample_rate_is_named_through_a_noise_level_too_high(monkeypatch, bound,
+                                                                               rig_diagnosis):
     # rig-d23-045 (independent rig, 373 Hz, steps and a chirp): a one-sample delay. The recalibrated
     # model's misfit filled the upper half of the spectrum; the delay took the held-out rmse from
     # 0.0647 to 0.0284 um and from 2.11 to 0.29 mV and "explained 0 %": nothing was named
     monkeypatch.setattr(stats, "NOISE_BOUND", bound)
-    res = _rig_diagnosis("rig-d23-045")
+    res = rig_diagnosis("rig-d23-045")
     if bound:
         assert res["final"]["effects"] == ["time_delay"], res["final"]["verdict"]
     else:
@@ -79,12 +72,12 @@ def test_a_delay_at_a_low_sample_rate_is_named_through_a_noise_level_too_high(mo
 
 
 @pytest.mark.parametrize("bound", [RULE, 1.0], ids=["rule", "any-gain"])
-def test_creep_at_a_low_sample_rate_is_named_without_a_drift_beside_it(monkeypatch, bound):
+def test_creep_at_a_low_sample_rate_is_named_without_a_drift_beside_it(monkeypatch, bound, rig_diagnosis):
     # rig-d22-174 (263 Hz, the displacement alone, steps): creep under a noise level 5.9 x the probe's.
     # Named; bounded by any gain, a thermal drift that took the held-out rmse from 0.0505 to
     # 0.0476 um "explained 58 %" after it and was named too
     monkeypatch.setattr(stats, "NOISE_BOUND", bound)
-    res = _rig_diagnosis("rig-d22-174")
+    res = rig_diagnosis("rig-d22-174")
     if bound < 1.0:
         assert res["final"]["effects"] == ["creep"], res["final"]["verdict"]
     else:

@@ -12,23 +12,14 @@ from piezo_fmu.diagnose import results
 RULE = results.FAINT_REMOVED      # (the tests below switch it off)
 
 
-def _rig_diagnosis(case_id):
-    from piezo_fmu import rig
-    from piezo_fmu.diagnose.run import analyse
-
-    draw = int(case_id.split("-")[1][1:]) if case_id.count("-") == 2 else 0
-    rec = rig.generate(next(s for s in rig.cases(draw=draw) if s.case_id == case_id))
-    return analyse([{"name": case_id, "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]).result
-
-
 @pytest.mark.parametrize("weak", [results.WEAK, 0.0], ids=["rule", "rule-before"])
-def test_a_faint_candidate_on_a_clean_device_leaves_nothing_missing(monkeypatch, weak):
+def test_a_faint_candidate_on_a_clean_device_leaves_nothing_missing(monkeypatch, weak, rig_diagnosis):
     # rig-d4-101: a clean Bouc-Wen device at 657 Hz; a delay screened in as a candidate at confidence
     # 0.10, the residual 1.4 noise rms on both channels. The verdict is "nothing is missing", the
     # delay listed as a candidate; with every candidate counted (the rule before) it was "a
     # structured residual remains"
     monkeypatch.setattr(results, "WEAK", weak)
-    res = _rig_diagnosis("rig-d4-101")
+    res = rig_diagnosis("rig-d4-101")
     final = res["final"]
     assert final["effects"] == []
     cands = {c["effect"]: c["confidence"] for c in res["candidates"]}
@@ -43,13 +34,13 @@ def test_a_faint_candidate_on_a_clean_device_leaves_nothing_missing(monkeypatch,
 
 
 @pytest.mark.parametrize("floor", [RULE, 0.0], ids=["rule", "rule-before"])
-def test_a_candidate_below_half_the_noise_leaves_nothing_missing(monkeypatch, floor):
+def test_a_candidate_below_half_the_noise_leaves_nothing_missing(monkeypatch, floor, rig_diagnosis):
     # rig-d3-005: a clean device at 503 Hz with a creep candidate at confidence 0.42 and a residual
     # of 0.3 noise rms: the creep's correction removes less than half the noise rms on both
     # channels, below what the recording can show. The verdict is "nothing is missing", the creep
     # listed; with every candidate from WEAK counted (the rule before) a structured residual remained
     monkeypatch.setattr(results, "FAINT_REMOVED", floor)
-    res = _rig_diagnosis("rig-d3-005")
+    res = rig_diagnosis("rig-d3-005")
     final = res["final"]
     cands = {c["effect"]: c for c in res["candidates"]}
     assert final["effects"] == [] and "creep" in cands, cands
@@ -64,11 +55,11 @@ def test_a_candidate_below_half_the_noise_leaves_nothing_missing(monkeypatch, fl
         assert not final["nothing_missing"], final["verdict"]
 
 
-def test_a_candidate_above_the_faint_level_still_counts():
+def test_a_candidate_above_the_faint_level_still_counts(rig_diagnosis):
     # rig-135: a control (a disturbance off the catalogue) with a creep candidate at 0.31 whose
     # correction removes 1.6 x the noise rms from x on held-out data, the residual below ORDINARY:
     # a candidate that strong is not passed over ("a structured residual remains")
-    res = _rig_diagnosis("rig-135")
+    res = rig_diagnosis("rig-135")
     final = res["final"]
     cands = {c["effect"]: c for c in res["candidates"]}
     assert final["effects"] == [] and cands, cands
