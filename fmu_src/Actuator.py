@@ -8,7 +8,7 @@ from slavebase import SlaveBase as Fmi2Slave
 
 from piezo_fmu.core import units
 from piezo_fmu.core.compiled import ENGINES, compile_unit
-from piezo_fmu.core.plant import PICKOFFS, RESONANCE_AT
+from piezo_fmu.core.plant import PICKOFFS, RESONANCE_AT, STROKE_PATHS
 
 
 class Actuator(Fmi2Slave):
@@ -19,7 +19,7 @@ class Actuator(Fmi2Slave):
     DEFAULT_EXPERIMENT = {"startTime": 0.0, "stopTime": 0.02, "stepSize": 1e-4}
     COMPILE = staticmethod(compile_unit)     # simulation.engine = numba
     PARAMETERS = {"amplifier": None, "hysteresis": None, "creep": None, "mechanics": None,
-                  "resonance": None, "drift": None, "simulation": ("actuator_max_step",)}
+                  "resonance": None, "drift": None, "simulation": ("actuator_max_step", "stroke_path")}
     # tunable: values that no state variable depends on; a change rebuilds the unit (new
     # discretisation) and carries the state over, effective from the next step. Fixed: delay (the
     # delay line's length), u_norm/thresholds (the play operators' memory), creep, mechanics and
@@ -29,7 +29,8 @@ class Actuator(Fmi2Slave):
                "hysteresis.cells_weights",
                "drift.offset", "drift.rate", "drift.curvature", "drift.time_constant", "simulation.actuator_max_step")
     CHECK = staticmethod(units.check_sections)   # the same consistency rules as model files
-    CODES = {"mechanics.pickoff": PICKOFFS, "resonance.position": RESONANCE_AT}
+    CODES = {"mechanics.pickoff": PICKOFFS, "resonance.position": RESONANCE_AT,
+             "simulation.stroke_path": STROKE_PATHS}
 
     def define(self):
         self.add_input("uc", 3.0, "V", "amplifier command voltage")

@@ -170,6 +170,10 @@ SCHEMA = {
     "simulation": {
         "step": _f("s", "positive", "internal step of the monolithic model", 1e-5),
         "actuator_max_step": _f("s", "positive", "largest internal step of the actuator unit", 1e-4),
+        "stroke_path": Spec("1", "str", doc="how the free stroke moves between the actuator's steps: linear "
+                                             "(a straight line) | amplifier_lag (along the amplifier's lag "
+                                             "R C_a + tau_2; diagnose chooses it from the data)",
+                            default="linear", choices=("linear", "amplifier_lag")),
     },
 }
 

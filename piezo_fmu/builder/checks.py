@@ -14,7 +14,7 @@ __all__ = ["FMU_SECTIONS", "check_interface", "smoke_run"]
 # model sections of each FMU (checked after the build: every key must be a parameter)
 FMU_SECTIONS = {
     "Actuator": {"amplifier": None, "hysteresis": None, "creep": None, "mechanics": None,
-                 "resonance": None, "drift": None, "simulation": ("actuator_max_step",)},
+                 "resonance": None, "drift": None, "simulation": ("actuator_max_step", "stroke_path")},
     "Sensor": {"sensor": None},
     "Compensator": {"compensator": None, "compensator.hysteresis": None, "compensator.dynamics": None},
     "PassThrough": {},

@@ -2,8 +2,8 @@
 
 Continuous systems are given as transfer functions ``num(s)/den(s)`` (coefficients in descending
 powers of ``s``) or as state-space matrices. :func:`discretize` returns the exact discrete
-equivalent for an input that is held (``"zoh"``) or linearly interpolated (``"foh"``) over the
-step::
+equivalent for an input that is held (``"zoh"``), linearly interpolated (``"foh"``) or moved along
+a first-order lag (``"lag"``) over the step::
 
     x[k+1] = Phi x[k] + G0 u[k] + G1 u[k+1]        (G1 = 0 for "zoh")
     y[k]   = C x[k] + D u[k]
@@ -139,17 +139,23 @@ def is_hurwitz(den) -> bool:
     return bool(np.all(np.real(np.roots(den)) < 0))
 
 
-def discretize(a, b, h, method="foh"):
+def discretize(a, b, h, method="foh", tau=0.0):
     """Exact discretisation of ``x' = A x + B u`` over a step ``h`` [s].
 
     Returns ``(Phi, G0, G1)`` with ``x[k+1] = Phi x[k] + G0 u[k] + G1 u[k+1]``.
-    ``method="zoh"`` holds ``u[k]`` over the step (``G1 = 0``); ``"foh"`` interpolates linearly.
+    ``method="zoh"`` holds ``u[k]`` over the step (``G1 = 0``); ``"foh"`` interpolates linearly;
+    ``"lag"`` moves the input from ``u[k]`` to ``u[k+1]`` along a first-order lag of time constant
+    ``tau`` [s], ``u[k] + (u[k+1] - u[k]) (1 - exp(-t / tau)) / (1 - exp(-h / tau))``: the path of
+    a stroke behind an amplifier of that lag driven by a held command (``tau`` far below ``h``: the
+    new value over the whole step; far above: the straight line of ``"foh"``).
     """
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float).reshape(a.shape[0], -1)
     n, m = b.shape
     if not (h > 0 and math.isfinite(h)):
         raise ValueError(f"step must be positive and finite, got {h!r}")
+    if method == "lag" and not (tau >= 0 and math.isfinite(tau)):
+        raise ValueError(f"the lag of the input's path must be >= 0 and finite [s], got {tau!r}")
     # Block matrix [[A, B, 0], [0, 0, I/h], [0, 0, 0]] * h: its exponential holds
     # Phi, the integral of e^{As}B, and the first moment needed for the ramp input.
     big = np.zeros((n + 2 * m, n + 2 * m))
@@ -162,8 +168,19 @@ def discretize(a, b, h, method="foh"):
     gam2 = e[:n, n + m:]           # int_0^h e^{A s} (h - s)/h ds B
     if method == "zoh":
         return phi, gam1, np.zeros_like(gam1)
-    if method == "foh":
+    if method == "foh" or (method == "lag" and tau > 1e8 * h):
         return phi, gam1 - gam2, gam2
+    if method == "lag":
+        lam = min(h / tau, 1e5) if tau > 0 else 1e5
+        # [[A, B, 0], [0, -I/tau, I/tau], [0, 0, 0]] * h: the middle state v rises as 1 - e^{-t/tau}
+        # from 0 towards the held last one; the top right block is int_0^h e^{A (h - t)} B v(t) dt,
+        # with no difference of nearly equal terms at any ratio h / tau
+        big[:n, n + m:] = 0.0
+        big[n:n + m, n:n + m] = -lam * np.eye(m)
+        big[n:n + m, n + m:] = lam * np.eye(m)
+        rise = expm(big)[:n, n + m:]
+        g1 = rise / -math.expm1(-lam)
+        return phi, gam1 - g1, g1
     raise ValueError(f"unknown discretisation method {method!r}")
 
 
@@ -222,9 +239,12 @@ class LinearSystem:
     ----------
     num, den : sequence of float
         Transfer function coefficients, descending powers of ``s`` (proper).
-    method : {"foh", "zoh"}
-        How the input moves within a step: linearly from the previous value (``"foh"``) or held
-        at the new value (``"zoh"``).
+    method : {"foh", "zoh", "lag"}
+        How the input moves within a step: linearly from the previous value (``"foh"``), held
+        at the new value (``"zoh"``) or along a first-order lag from the previous value to the new
+        one (``"lag"``, see :func:`discretize`).
+    tau : float
+        The time constant of that lag [s] (``"lag"`` only).
 
     ``step(u, h)`` advances ``h`` seconds and returns the output at the end of the step. The
     discrete data (``phi`` n*n row-major, ``g`` = G0 then G1, ``cd`` = C then D) and the state
@@ -232,11 +252,12 @@ class LinearSystem:
     :func:`lti_advance` kernel (also compiled by numba for the monolithic model).
     """
 
-    __slots__ = ("num", "den", "method", "a", "b", "phi", "g", "cd", "xs", "tmp", "h")
+    __slots__ = ("num", "den", "method", "tau", "a", "b", "phi", "g", "cd", "xs", "tmp", "h")
 
-    def __init__(self, num, den, method="foh"):
-        if method not in ("foh", "zoh"):
+    def __init__(self, num, den, method="foh", tau=0.0):
+        if method not in ("foh", "zoh", "lag"):
             raise ValueError(f"unknown discretisation method {method!r}")
+        self.tau = float(tau)
         self.num = [float(v) for v in np.atleast_1d(num)]
         self.den = [float(v) for v in np.atleast_1d(den)]
         self.method = method
@@ -263,7 +284,7 @@ class LinearSystem:
             return
         n = self.order
         if n:
-            phi, g0, g1 = discretize(self.a, self.b, h, self.method)
+            phi, g0, g1 = discretize(self.a, self.b, h, self.method, self.tau)
             self.phi[:] = [float(v) for v in phi.ravel()]
             self.g[:] = [float(v) for v in g0.ravel()] + [float(v) for v in g1.ravel()]
         self.h = h

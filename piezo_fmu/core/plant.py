@@ -11,18 +11,15 @@ Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made 
   i.e. a slew-rate limit. With the command held over a step the response is monotone, so the
   rate-independent PI evaluated at the step's end point is exact. Optionally (beyond the paper) a
   second lag stage ``tau_2 dy/dt + y = uc`` before it makes the amplifier second order; the output
-  stage then sees ``y``'s mean over the step held (exact for ``y``, second-order accurate in ``h``
-  for ``ua``).
+  stage sees ``y``'s mean over the step held (exact for ``y``, second order in ``h`` for ``ua``).
 * Stack (eq. 1 with hysteresis): the free stroke ``x_h = scale * Pi[ua / u_norm]`` (beyond the
   paper, optionally plus a Preisach term of KP cells, ``scale * K[ua / u_norm]``
   (:mod:`.preisach`: loop features tied to absolute voltages), and saturating at high field:
-  ``x_h / (1 + |x_h| / y_sat)``); the generated
-  force on the push rod is ``F_out = k_a x_h`` (eq. 5: ``k_a n d33 ua`` in the linear case).
+  ``x_h / (1 + |x_h| / y_sat)``); the force on the push rod is ``F_out = k_a x_h`` (eq. 5).
 * Mechanics (eq. 4): ``m x'' + c x' + (k_a + k_f) x = F_out``, optionally followed by a further
   mechanical mode (``extra_resonance``; or that mode on the drive, before the mechanics, where
-  every pick-off of the sensor sees it: ``resonance_at = "drive"``); solved exactly for an input
-  interpolated linearly
-  over the step.
+  every pick-off of the sensor sees it: ``resonance_at = "drive"``); solved exactly for a stroke
+  moving over the step linearly or along the amplifier's lag (``stroke_path``).
 * Creep (beyond the paper): ``x_free = (1 + sum_j g_j / (tau_j s + 1)) x_h``.
 * Sensor (eq. 3): the quartz charge ``q = d11 F`` on ``C_s + C_load`` gives
   ``us = q / (C_s + C_load)``; with a finite leakage time constant the charge decays
@@ -30,8 +27,7 @@ Signal chain of the actuator (paper eqs. 1-5, with the stack's free stroke made 
   wafer carries: the stack's blocked force ``F_out`` (the paper's eq. 5, pick-off ``"stack"``), the
   contact force between stack and push rod ``k_a (x_free - x) = m x'' + c x' + k_f x`` (``"contact"``:
   the mechanics' modes show in it), or the preload spring's ``k_f x`` (``"load"``: it follows the
-  push-rod displacement). Optionally the output is sampled late by a whole
-  number of steps (``lag``: the acquisition's sampling lag).
+  push-rod displacement). Optionally sampled late by whole steps (``lag``: a sampling lag).
 
 All units keep explicit state with ``get_state``/``set_state``. Everything needs only NumPy; the
 optional compiled engine (:func:`.compiled.compile_unit`) needs numba.
@@ -50,12 +46,13 @@ from .linear import TINY, LinearSystem, as_floats, lti_advance, same_step
 EPS0 = 8.8541878128e-12  # vacuum permittivity [F/m]
 
 __all__ = ["amp_step", "actuator_step", "drift_at", "drift_curvature", "Actuator", "Sensor",
-           "sensor_step", "EPS0", "PICKOFFS", "RESONANCE_AT"]
+           "sensor_step", "EPS0", "PICKOFFS", "RESONANCE_AT", "STROKE_PATHS"]
 
 # what the quartz wafer's force is (mechanics.pickoff), as the FMUs' Integer codes
 PICKOFFS = {"stack": 0, "load": 1, "contact": 2}
 # where the further mode acts (resonance.position), as the FMUs' Integer codes
 RESONANCE_AT = {"output": 0, "drive": 1}
+STROKE_PATHS = {"linear": 0, "amplifier_lag": 1}    # simulation.stroke_path (Actuator), as Integer codes
 
 
 def amp_step(ua, target, tau, slew, h, decay):
@@ -174,6 +171,8 @@ class Actuator:
     (up to three; :func:`drift_at`);
     drift_tau : the curvature term's warm-up time constant [s] (inf: a quadratic drift).
     max_step : largest internal step [s]; a communication step is split into equal sub-steps.
+    stroke_path : the free stroke's path between steps: ``"linear"`` or ``"amplifier_lag"`` (along the
+    lag ``R C_a + tau_2`` towards the new value: exact for a stroke proportional to ``ua``).
 
     Outputs after :meth:`advance`: ``x`` [um], ``F`` [N], ``ua`` [V], ``x_h`` [um].
     """
@@ -181,7 +180,7 @@ class Actuator:
     def __init__(self, *, k_amp, R, C_a, u_min, u_max, hysteresis: PrandtlIshlinskii,
                  m, c, k_a, k_f, saturation=math.inf, I_max=math.inf, delay=0.0, creep_gains=(), creep_taus=(),
                  resonance=None, drift=(), drift_tau=math.inf, max_step=1e-4, tau_2=0.0, pickoff="stack", resonance_at="output",
-                 prepared=0.0, cells: KPCells | None = None):
+                 prepared=0.0, cells: KPCells | None = None, stroke_path="linear"):
         self.k_amp, self.R, self.C_a = float(k_amp), float(R), float(C_a)
         self.u_min, self.u_max, self.I_max = float(u_min), float(u_max), float(I_max)
         self.delay = float(delay)
@@ -215,7 +214,8 @@ class Actuator:
         self.cells = cells if cells is not None else KPCells()
         self.kp_c = self.cells.table()
         self.kp_s = [0.0] * self.cells.m
-        self.creep = LinearSystem(*creep_tf(self.creep_gains, self.creep_taus))
+        path = ("lag", self.R * self.C_a + self.tau_2) if STROKE_PATHS[stroke_path] else ("foh",)
+        self.creep = LinearSystem(*creep_tf(self.creep_gains, self.creep_taus), *path)
         self.k_force = self.k_a * 1e-6
         self.frc = [self.k_force, float(PICKOFFS[pickoff]), self.k_f * 1e-6]
         if resonance_at not in RESONANCE_AT:
@@ -223,8 +223,8 @@ class Actuator:
         self.resonance_at = resonance_at
         drive = self.resonance is not None and resonance_at == "drive"
         if drive:          # the mode shapes the free stroke: it joins the creep block
-            self.creep = LinearSystem(*series_tf(creep_tf(self.creep_gains, self.creep_taus), mode_tf(*self.resonance)))
-        self.mech = LinearSystem(*mechanics_tf(self.m, self.c, self.k_a, self.k_f, None if drive else self.resonance))
+            self.creep = LinearSystem(*series_tf(creep_tf(self.creep_gains, self.creep_taus), mode_tf(*self.resonance)), *path)
+        self.mech = LinearSystem(*mechanics_tf(self.m, self.c, self.k_a, self.k_f, None if drive else self.resonance), *path)
         self.out = [0.0, 0.0, 0.0, 0.0]
         self._h = None
         self._adv_step = None

@@ -106,6 +106,7 @@ def actuator_from(sections) -> Actuator:
         creep_gains=cr.get("gains", []), creep_taus=cr.get("time_constants", []),
         resonance=(f_n, res.get("zeta", 0.05)) if f_n > 0 else None,
         drift=drift, drift_tau=dr.get("time_constant", math.inf), max_step=sections.get("simulation", {}).get("actuator_max_step", 1e-4),
+        stroke_path=sections.get("simulation", {}).get("stroke_path", "linear"),
     )
     act.reset()
     return act

@@ -14,8 +14,8 @@ nonlinearity that is not linear in its parameters:
 * everything after the hysteresis is linear in the PI weights: creep, the mechanics (first mode,
   optional further mode) for ``x``; creep, then the stack force (pick-off ``stack``) or the load
   spring's force (``load``: through the mechanics), then leakage for ``us``. These are the core's
-  continuous blocks discretised exactly as the core does (first-order hold,
-  :func:`~piezo_fmu.core.linear.discretize`), applied as IIR filters to every operator column at
+  continuous blocks discretised exactly as the core does (the stroke moving along the amplifier's
+  lag between steps, :func:`~piezo_fmu.core.linear.discretize`), applied as IIR filters to every operator column at
   once; a channel's sampling lag shifts its samples.
 
 So for given dynamics the displacement and sensor voltage are linear in the PI weights, the
@@ -130,17 +130,20 @@ def operators(ua: np.ndarray, p: Params) -> np.ndarray:
 
 
 @lru_cache(maxsize=256)
-def foh_filter(num, den, h):
-    """``(b, a)`` of the exact first-order-hold discretisation of ``num/den`` at step ``h``.
+def foh_filter(num, den, h, hold=None):
+    """``(b, a)`` of the exact discretisation of ``num/den`` at step ``h``: the input interpolated
+    linearly over the step, or with ``hold`` [s] moving along a first-order lag of that time
+    constant (the stroke behind the amplifier, as the core's actuator discretises its blocks).
 
-    The same discretisation the core's ``LTIData`` uses: ``x[k+1] = Phi x[k] + G0 u[k] + G1 u[k+1]``,
-    ``y[k] = C x[k] + D u[k]``, rewritten as an ordinary difference equation for ``lfilter``.
+    The same discretisation the core's ``LinearSystem`` uses: ``x[k+1] = Phi x[k] + G0 u[k] +
+    G1 u[k+1]``, ``y[k] = C x[k] + D u[k]``, rewritten as an ordinary difference equation for
+    ``lfilter``.
     """
     a, b, c, d = tf2ss(np.array(num), np.array(den))
     n = a.shape[0]
     if n == 0:
         return np.array([float(d[0, 0])]), np.array([1.0])
-    phi, g0, g1 = discretize(a, b, h, "foh")
+    phi, g0, g1 = discretize(a, b, h, "foh") if hold is None else discretize(a, b, h, "lag", hold)
     bd = phi @ g1 + g0
     dd = c @ g1 + d
     bz, az = ss2tf(phi, bd, c, dd)
@@ -155,7 +158,7 @@ def _filt(num, den, h, cols):
 
 
 def lowpass(cols, tau, h):
-    """``1 / (tau s + 1)`` (first-order hold, as the core's creep elements)."""
+    """``1 / (tau s + 1)``, the input interpolated linearly (a screening's regressor)."""
     return _filt([1.0], [tau, 1.0], h, cols)
 
 
@@ -165,10 +168,12 @@ def _padd(a, b):
 
 
 @lru_cache(maxsize=512)
-def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output"):
+def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output", hold=None):
     """Second-order sections of the whole linear chain after the hysteresis for one channel:
     ``(front, sos, gain, dc)``, ``dc`` its static gain before the sensor's leakage (from the
-    continuous blocks, exact).
+    continuous blocks, exact). ``hold`` [s]: the amplifier's lag, along which the stroke moves
+    between samples into the creep and the mechanics (the sensor's leakage sees the force at the
+    samples, linearly interpolated, as the core's sensor).
 
     The core's blocks, each discretised on its own as the core steps them (creep, then mechanics
     with the optional mode for ``x``; creep, then the force (through the mechanics for the load
@@ -188,13 +193,13 @@ def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output"):
         front = []
         dc = sum(float(tn[-1]) / float(td[-1]) for tn, td in terms)
         for tn, td in terms:
-            b, a = foh_filter(tuple(float(v) for v in tn), tuple(float(v) for v in td), h)
+            b, a = foh_filter(tuple(float(v) for v in tn), tuple(float(v) for v in td), h, hold)
             front.append(_sos(b, a))
         blocks = []
         res = None
     else:
         for g, tau in creep:
-            b, a = foh_filter((1.0,), (tau, 1.0), h)
+            b, a = foh_filter((1.0,), (tau, 1.0), h, hold)
             # num/den + g b/a = (num a + g b den) / (den a)
             num = _padd(np.convolve(num, a), g * np.convolve(b, den))
             den = np.convolve(den, a)
@@ -208,7 +213,7 @@ def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output"):
         if channel == "us" and pick == "contact":
             # F_c / F_out = 1 - k_a 1e-6 x / F_out (the core subtracts k_a x from F_out: the same map)
             mn = _padd(np.asarray(md, float)[::-1], -k_a * 1e-6 * np.asarray(mn, float)[::-1])[::-1]
-        blocks.append(foh_filter(tuple(float(v) for v in mn), tuple(float(v) for v in md), h))
+        blocks.append(foh_filter(tuple(float(v) for v in mn), tuple(float(v) for v in md), h, hold))
         dc *= float(np.asarray(mn, float)[-1]) / float(np.asarray(md, float)[-1])
         if channel == "us" and pick == "load":
             gain *= k_f * 1e-6
@@ -240,7 +245,8 @@ def chain(cols, channel, dev: Device, p: Params, h):
     front, sos, gain, dc = _chain_sos(channel, tuple((float(g), float(t)) for g, t in p.creep),
                            None if p.res is None else (float(p.res[0]), float(p.res[1])),
                            float(p.tau_leak) if channel == "us" else math.inf,
-                           (float(p.m), float(p.c), dev.k_a, dev.k_f), p.pick, float(h), p.res_at)
+                           (float(p.m), float(p.c), dev.k_a, dev.k_f), p.pick, float(h), p.res_at,
+                           float(p.tau + p.tau2) if p.path_lag else None)
     # the chain starts settled at the first sample's stroke (a prepared start has one; a relaxed
     # start is at zero): its steady response to that level, plus the filtered change from it
     c0 = cols[..., :1] * gain

@@ -88,6 +88,8 @@ class Params:
     cell_w: np.ndarray | None = None  # their weights [um of free stroke per unit of cell state]
     cells_held: bool = False         # the cells' weights held in their ratios (one column, one scale)
     cell_scale: float = 1.0          # that scale: the cells' weights are cell_w * cell_scale
+    path_lag: bool = False           # the stroke moves along the amplifier's lag between samples (the
+                                     # model's simulation.stroke_path amplifier_lag), not a straight line
     classical: bool = False          # every PI weight >= 0 (the paper's identification: a classical
                                      # loop), not only their partial sums (the recalibration's)
 
@@ -204,7 +206,8 @@ def params_from_model(model, dt=None) -> Params:
         res_at=res.get("position", "output"),
         off_x=dr.get("offset", 0.0), rate=dr.get("rate", 0.0), curv=dr.get("curvature", 0.0),
         drift_tau=dr.get("time_constant", math.inf),
-        S=s["d11"] / dev.C_sensor, off_s=s.get("offset", 0.0), tau_leak=s.get("tau_leak", math.inf))
+        S=s["d11"] / dev.C_sensor, off_s=s.get("offset", 0.0), tau_leak=s.get("tau_leak", math.inf),
+        path_lag=model.sections.get("simulation", {}).get("stroke_path", "linear") == "amplifier_lag")
 
 
 def _num(v, digits=8):
@@ -235,6 +238,9 @@ def model_from_params(base, p: Params, sources: dict, dt=None):
     put("mechanics", "m", _num(p.m), fitted + " (with c: the first mode of the mechanics)")
     put("mechanics", "c", _num(p.c), fitted + " (with m: the first mode of the mechanics)")
     put("mechanics", "pickoff", p.pick, "diagnose: what the sensor channel follows, chosen from the data")
+    if p.path_lag or "stroke_path" in m.sections.get("simulation", {}):
+        put("simulation", "stroke_path", "amplifier_lag" if p.path_lag else "linear",
+            "diagnose: the base model's path of the stroke between samples (the fit replayed it)")
     if dt:
         put("sensor", "lag", _num(p.lag_us * dt, 10), "diagnose: sampling lag of the sensor channel, "
             f"{p.lag_us} sample(s) of the recording")

@@ -539,6 +539,7 @@ def recal_summary(p, dev, dt, recal, fitter=None):
             "contact": "the contact force between stack and push rod (the modes show in it)",
             "load": "the load spring's force: the push-rod displacement"}[p.pick],
             "identified": rep.get("pickoff", {}).get("identified", False)},
+        "stroke_path": "amplifier_lag" if p.path_lag else "linear",
         "sampling_lag_x_samples": p.lag_x, "sampling_lag_us_samples": p.lag_us,
         "sampling_lag_x_s": val(p.lag_x * dt), "sampling_lag_us_s": val(p.lag_us * dt),
         "u_norm_V": p.u_norm,
