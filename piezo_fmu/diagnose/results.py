@@ -19,6 +19,7 @@ from .engine import model_from_params, predict
 from .recordings import HELDOUT_EVERY, JUMP, RESPONSE_S
 from .select import ACCEPT, CONFIDENT
 from .stats import improvement_band, input_xcorr, tau_int, whiteness
+from .unexplained import bandpass, describe_band, dominant_freq, range_sentence, trend as slow_trend
 
 __all__ = ["assemble", "below_noise", "describe_parameters", "file_predictions", "localise", "nrmse",
            "rmse_as_given", "to_model"]
@@ -192,7 +193,8 @@ def _finding(f, recs, ctxs, dev, noise, p_final, struct_final, dt):
 
 
 def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final, findings, candidates,
-             rejected, noise, noise_ar, loc_base, ctxs, nominal_as_given, notes, base_struct_rms, recal):
+             rejected, noise, noise_ar, loc_base, ctxs, nominal_as_given, notes, base_struct_rms, recal,
+             between=None):
     dt = min(r.dt for r in recs)
     base_preds = [predict(r, dev, p_base) for r in recs]
     base_oriented = [{c: r.sign.get(c, 1) * pr[c] for c in ("x", "us")} for r, pr in zip(recs, base_preds)]
@@ -227,8 +229,8 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
                     "noise": noise[c], "tau_int_samples": round(ti, 1),
                     "structured_rms": math.sqrt(max(float(np.mean(e_cat ** 2)) - noise[c] ** 2, 0.0))}
         struct_rms = tests[c]["structured_rms"]
-        where_range = _range_sentence(e0, r0.u, ctxs[0]["rate"], noise[c])
-        trend = _trend(e0, r0.t, noise[c])
+        where_range = range_sentence(e0, r0.u, ctxs[0]["rate"], noise[c])
+        trend = slow_trend(e0, r0.t, noise[c])
         if trend and struct_rms > 0.5 * noise[c]:
             unexplained.append({
                 "channel": c, "band_hz": [0.0, round(2.0 / max(float(r0.t[-1]), 1e-9), 4)], "peak_hz": 0.0,
@@ -248,14 +250,14 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
                 for b in locate.bands(e, r.u, 1 / r.dt, noise[c], min_share=0.1):
                     if b["rms"] < 0.3 * noise[c]:
                         continue
-                    score = np.clip(_bandpass(e, b["band_hz"], 1 / r.dt) ** 2, 0, None)
+                    score = np.clip(bandpass(e, b["band_hz"], 1 / r.dt) ** 2, 0, None)
                     wins = locate.windows(score, ctx, 2.0 * float(np.mean(score)), max_windows=3,
                                           min_len_s=max(0.02, 0.002 * r.t[-1]))
                     unexplained.append({
                         "channel": c, "band_hz": b["band_hz"], "peak_hz": b["peak_hz"], "rms": b["rms"],
                         "unit": UNITS[c],
                         "coherence_with_input": round(b["coherence"], 3),
-                        "description": _describe_band(b, noise[c], _dominant_freq(r.u, r.dt))
+                        "description": describe_band(b, noise[c], dominant_freq(r.u, r.dt))
                                        + (f"; {where_range}" if where_range else ""),
                         "where": [{"t0_s": round(r.t0 + w["t0"], 6), "t1_s": round(r.t0 + w["t1"], 6),
                                    "why": locate.describe_window(ctx, w["k0"], w["k1"])} for w in wins],
@@ -279,6 +281,14 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
     faint = [c for c, f in zip(out_candidates, candidates) if c["confidence"] < WEAK or below_noise(f["cmp"])]
     nothing_missing = not out_findings and len(faint) == len(out_candidates) and all(
         final_struct_rms[c] <= ORDINARY * noise[c] for c in final_struct_rms)
+    # with nothing named and more than the ordinary misfit left, a slowly sampled recording is refitted
+    # with its path between the samples (``between``: :func:`.between.between_samples`)
+    path = None
+    if (between is not None and not nothing_missing and not out_findings
+            and len(faint) == len(out_candidates)):
+        path = between()
+        if path is not None and all(path["structured_rms"][c] <= ORDINARY * noise[c] for c in final_struct_rms):
+            nothing_missing = True
     struct_txt = ", ".join(f"{c} {final_struct_rms[c] / max(noise[c], 1e-300):.2g}" for c in final_struct_rms)
     listed = (f"; weaker candidates (confidence below {WEAK:g}, or a correction below {FAINT_REMOVED:g} x the "
               "noise rms on held-out data) are listed, not counted: "
@@ -286,6 +296,12 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
     if nothing_missing and all(final_struct_rms[c] <= 0.5 * noise[c] for c in final_struct_rms):
         verdict = ("nothing is missing: the recalibrated nominal model explains the recording down to the "
                    "noise (structured residual below half the noise level on every channel)" + listed)
+    elif nothing_missing and path is not None:
+        fine_txt = ", ".join(f"{c} {path['structured_rms'][c] / max(noise[c], 1e-300):.2g}" for c in final_struct_rms)
+        verdict = ("nothing is missing: no catalogue mechanism is supported; what is left at one step per sample "
+                   f"(structured residual {struct_txt} x the noise rms) is the stroke's path between the "
+                   f"samples: refitted with {path['steps_per_sample']} steps per sample, the recalibrated model "
+                   f"leaves {fine_txt} x the noise, below {ORDINARY:g} x" + listed)
     elif nothing_missing:
         verdict = ("nothing is missing: no catalogue mechanism is supported"
                    + (f" at confidence {WEAK:g} or more" if faint else "") + ", and what is left (structured "
@@ -326,6 +342,13 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
         "final": {"effects": list(struct_final.effects), "rmse": final_rmse, "nrmse": nrmse(recs, final_rmse),
                   "rmse_away_from_jumps": final_away,
                   "structured_rms": final_struct_rms, "tests": tests, "verdict": verdict,
+                  **({"refitted_between_samples": {
+                      "steps_per_sample": path["steps_per_sample"], "rate_hz": path["rate_hz"],
+                      "structured_rms": path["structured_rms"], "rmse": path["rmse"],
+                      "first_mode": path["first_mode"],
+                      "meaning": "the recalibrated model refitted with that many replay steps per sample "
+                                 "(units as the channels'); asked when nothing is named and more than the "
+                                 "ordinary misfit is left at one step per sample"}} if path else {}),
                   "nothing_missing": nothing_missing},
         "validation": {
             "method": "interleaved blocks: each recording is cut into equal consecutive blocks; "
@@ -347,97 +370,6 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
         },
         "notes": notes,
     }
-
-
-def _bandpass(e, band, fs):
-    from scipy.signal import butter, sosfiltfilt
-
-    lo, hi = band
-    ny = fs / 2
-    lo = max(lo, 1e-3 * ny)
-    hi = min(max(hi, lo * 1.2), 0.99 * ny)
-    try:
-        sos = butter(2, [lo / ny, hi / ny], btype="band", output="sos")
-        return sosfiltfilt(sos, e)
-    except ValueError:
-        return e - np.mean(e)
-
-
-def _trend(e, t, noise):
-    """A quadratic trend in time that carries most of a structured residual, or ``None``."""
-    tn = t / max(float(t[-1]), 1e-12)
-    a = np.vstack([np.ones_like(tn), tn, tn * tn]).T
-    coef, *_ = np.linalg.lstsq(a, e, rcond=None)
-    fit = a @ coef
-    structured = max(float(np.mean(e * e)) - noise ** 2, 0.0)
-    trend_var = float(np.var(fit))
-    if structured <= 0 or trend_var < 0.5 * structured or math.sqrt(trend_var) < 0.5 * noise:
-        return None
-    return {"rms": math.sqrt(trend_var), "change": float(fit[-1] - fit[0]),
-            "share": min(1.0, trend_var / structured)}
-
-
-def _range_sentence(e, u, rate, noise):
-    """Where over the operating range a residual is largest, when it clearly depends on it."""
-    rng = locate.operating_range(e, u, rate)
-    parts = []
-    for key, label, unit in (("rate", "command rate", "V/s"), ("amplitude", "command level", "V")):
-        rows = rng.get(key, [])
-        if len(rows) < 3:
-            continue
-        rms = np.array([r["rms"] for r in rows])
-        struct = np.sqrt(np.clip(rms ** 2 - noise ** 2, 0.0, None))
-        k_hi, k_lo = int(np.argmax(struct)), int(np.argmin(struct))
-        if struct[k_hi] > 1.5 * struct[k_lo] + 0.2 * noise:
-            lo, hi = rows[k_hi]["range"]
-            parts.append(f"largest at {label} {lo:.3g}-{hi:.3g} {unit} ({rms[k_hi]:.3g} rms against "
-                         f"{rms[k_lo]:.3g} at {rows[k_lo]['range'][0]:.3g}-{rows[k_lo]['range'][1]:.3g} {unit})")
-    return "; ".join(parts)
-
-
-def _dominant_freq(u, dt):
-    """Frequency [Hz] of a command dominated by one periodic component (else ``None``)."""
-    u = np.asarray(u, float) - np.mean(u)
-    if u.size < 16:
-        return None
-    spec = np.abs(np.fft.rfft(u * np.hanning(u.size))) ** 2
-    spec[0] = 0.0
-    k = int(np.argmax(spec))
-    share = float(np.sum(spec[max(1, k - 3):k + 4]) / max(np.sum(spec), 1e-300))
-    if share < 0.5 or k < 1 or k >= spec.size - 1:
-        return None
-    a, b, c = np.log(spec[k - 1:k + 2] + 1e-300)
-    off = 0.5 * (a - c) / (a - 2 * b + c) if (a - 2 * b + c) != 0 else 0.0
-    return float((k + off) / (u.size * dt))
-
-
-def _describe_band(b, noise, f0=None):
-    lo, hi = b["band_hz"]
-    width = hi - lo
-    harmonic = None
-    if f0:
-        k = round(b["peak_hz"] / f0)
-        if k >= 1 and abs(b["peak_hz"] - k * f0) <= max(0.03 * k * f0, b.get("df", 0.0)):
-            harmonic = k
-    if harmonic:
-        rel = (f"harmonic {harmonic} of the command's {f0:.4g} Hz: a periodic, phase-locked response to the "
-               "input that the model's loop shape (or another rate-independent nonlinearity) gets wrong")
-        if harmonic % 2 == 0:
-            rel += ("; an even harmonic means an asymmetry the symmetric play operators cannot draw (e.g. an "
-                    "asymmetric loop, or a displacement sensor that is not linear, like a capacitive gap sensor)")
-    elif b["coherence"] > 0.5:
-        rel = "coherent with the command: a response to the input that the model gets wrong"
-    elif b["coherence"] > 0.2:
-        rel = "partly coherent with the command"
-    else:
-        rel = "not coherent with the command: a disturbance or an interference, not a response to the input"
-    if width <= max(4.0 * b.get("df", 0.0), 0.25 * b["peak_hz"]) and b["peak_hz"] > 0:
-        kind = f"narrow-band line at {b['peak_hz']:.4g} Hz"
-    elif hi < 2.0:
-        kind = f"slow residual below {hi:.3g} Hz"
-    else:
-        kind = f"broad-band residual {lo:.4g}-{hi:.4g} Hz"
-    return f"{kind}, {b['rms']:.3g} rms ({b['rms'] / noise:.2g} x the noise), {rel}"
 
 
 UNITS = {"x": "um", "us": "V"}

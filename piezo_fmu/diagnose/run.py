@@ -24,6 +24,7 @@ import numpy as np
 from ..errors import UserError
 from ..model import Model, load_model
 from . import locate, workers
+from .between import between_samples
 from .budget import TIME_BUDGET_S, WORK_PER_S
 from .blas import single_thread
 from .engine import Device, Params, device_from_model, params_from_model, predict
@@ -263,7 +264,8 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     # -- results ----------------------------------------------------------------------------------------
     step("validating on held-out data")
     result = assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final, findings, candidates,
-                      rejected, noise, noise_ar, loc_base, ctxs, nominal_as_given, notes, base_struct_rms, recal)
+                      rejected, noise, noise_ar, loc_base, ctxs, nominal_as_given, notes, base_struct_rms, recal,
+                      between=lambda: between_samples(fitter, p_final, struct_final, noise, step))
     nominal_model = to_model(model, p_base, dev, recs, noise, "recalibrated nominal", sources)
     final_model = to_model(model, p_final, dev, recs, noise, "final", sources)
     preds_nom = file_predictions(recs, dev, p_base)
