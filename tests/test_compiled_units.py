@@ -39,6 +39,8 @@ ACTUATORS = {
     "warm-up drift": {"drift.offset": 0.02, "drift.rate": 0.1, "drift.curvature": 0.4, "drift.time_constant": 0.02,
                       "mechanics.pickoff": "load"},
     "contact pick-off": {"mechanics.pickoff": "contact", "amplifier.tau_2": 1e-4, "resonance.f_n": 900.0},
+    "stroke along the lag": {"simulation.stroke_path": "amplifier_lag", "mechanics.pickoff": "contact",
+                             "amplifier.tau_2": 1e-4, "creep.gains": [0.05], "creep.time_constants": [0.2]},
     "mode on the drive": {"resonance.f_n": 700.0, "resonance.position": "drive", "creep.gains": [0.05],
                           "creep.time_constants": [0.2]},
     # KP cells over -0.2..4.6 (u_norm units: -6..138 V), both signs of weight, a prepared start
