@@ -14,8 +14,9 @@ nonlinearity that is not linear in its parameters:
 * everything after the hysteresis is linear in the PI weights: creep, the mechanics (first mode,
   optional further mode) for ``x``; creep, then the stack force (pick-off ``stack``) or the load
   spring's force (``load``: through the mechanics), then leakage for ``us``. These are the core's
-  continuous blocks discretised exactly as the core does (the stroke moving along the amplifier's
-  lag between steps, :func:`~piezo_fmu.core.linear.discretize`), applied as IIR filters to every operator column at
+  continuous blocks discretised exactly as the core does (the stroke moving linearly between
+  steps, or along the amplifier's lag under the model's ``simulation.stroke_path``,
+  :func:`~piezo_fmu.core.linear.discretize`), applied as IIR filters to every operator column at
   once; a channel's sampling lag shifts its samples.
 
 So for given dynamics the displacement and sensor voltage are linear in the PI weights, the
