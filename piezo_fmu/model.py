@@ -172,7 +172,7 @@ SCHEMA = {
         "actuator_max_step": _f("s", "positive", "largest internal step of the actuator unit", 1e-4),
         "stroke_path": Spec("1", "str", doc="how the free stroke moves between the actuator's steps: linear "
                                              "(a straight line) | amplifier_lag (along the amplifier's lag "
-                                             "R C_a + tau_2; diagnose chooses it from the data)",
+                                             "R C_a + tau_2; exact for a stroke proportional to ua)",
                             default="linear", choices=("linear", "amplifier_lag")),
     },
 }

@@ -41,7 +41,8 @@ def test_the_lag_path_ends_in_a_jump_and_in_a_straight_line():
     _, l0, l1 = discretize(A, B, H, "lag", 1e3 * H)       # a lag far longer than the step: the line
     assert np.max(np.abs(l1 - f1)) < 1e-3 * np.max(np.abs(f1))
     _, j0, j1 = discretize(A, B, H, "lag", 0.0)          # no lag: the new value over the whole step
-    assert np.max(np.abs(j1 - z0)) < 1e-4 * np.max(np.abs(z0)) and np.max(np.abs(j0)) < 1e-4 * np.max(np.abs(z0))
+    scale = np.max(np.abs(z0))
+    assert np.max(np.abs(j1 - z0)) < 1e-4 * scale and np.max(np.abs(j0)) < 1e-4 * scale
     with pytest.raises(ValueError, match="lag of the input's path"):
         discretize(A, B, H, "lag", -1.0)
 
@@ -90,8 +91,8 @@ def _command(dt, n):
 
 def _run(m, u, dt, k):
     tf = np.arange(u.size * k) * (dt / k)
-    r = simulate(m, Signal("table", t=tf, values=np.repeat(u, k), column="u"), tf[-1], step=dt / k, mode="open",
-                 noise=False)
+    r = simulate(m, Signal("table", t=tf, values=np.repeat(u, k), column="u"), tf[-1], step=dt / k,
+                 mode="open", noise=False)
     return {c: np.asarray(r[c])[::k] for c in ("x", "us")}
 
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from .engine import predict
 from .fit import Fitter, free_names
-from .recalibrate import mode_at
+from .recalibrate import mode_at, mode_picks
 from .recordings import INTERNAL_RATE, internal_steps
 
 __all__ = ["between_samples"]
@@ -32,9 +32,10 @@ __all__ = ["between_samples"]
 def between_samples(fitter: Fitter, p, struct, noise, step=None):
     """Refit the ordinary parameters of ``p`` (``fitter.ordinary`` and ``struct``'s) with the
     recordings replayed at :data:`INTERNAL_RATE` inside, and return ``{"rate_hz", "steps_per_sample",
-    "structured_rms": {channel: value in the channel's unit}, "rmse"}`` over all samples (with the
-    ``noise`` levels per channel), the first mode (``found_here``: searched by :func:`_first_mode`, up
-    to twice the sample rate), or None when every recording is sampled at that rate or faster."""
+    "structured_rms": {channel: value in the channel's unit}, "rmse", "first_mode"}`` over all
+    samples (with the ``noise`` levels per channel; ``first_mode.found_here``: searched by
+    :func:`_first_mode`, up to twice the sample rate), or None when every recording is sampled at
+    that rate or faster."""
     fine = [replace(r, oversample=internal_steps(r.dt, r.n, INTERNAL_RATE)) for r in fitter.recs]
     if all(r.oversample == 1 for r in fine):
         return None
@@ -43,7 +44,7 @@ def between_samples(fitter: Fitter, p, struct, noise, step=None):
              "(the stroke's path between the samples)")
     fit = Fitter(fine, fitter.dev, fitter.lam)
     fit.limits = dict(fitter.limits)
-    fit.restart = dict(getattr(fitter, "restart", {}))
+    fit.restart = dict(fitter.restart)
     fit.ordinary = list(fitter.ordinary)
     q, found = p, False
     if "mech_f" not in fit.ordinary:
@@ -60,8 +61,9 @@ def between_samples(fitter: Fitter, p, struct, noise, step=None):
         rmse[c] = math.sqrt(ms)
     f1, z1 = q.mode(fit.dev)
     return {"rate_hz": INTERNAL_RATE, "steps_per_sample": max(r.oversample for r in fine),
-            "structured_rms": structured, "rmse": rmse, "params": q,
-            "first_mode": {"frequency_hz": float(f"{f1:.5g}"), "zeta": float(f"{z1:.4g}"), "found_here": found}}
+            "structured_rms": structured, "rmse": rmse,
+            "first_mode": {"frequency_hz": float(f"{f1:.5g}"), "zeta": float(f"{z1:.4g}"),
+                           "found_here": found}}
 
 
 # where the first mode is searched, in units of the sample rate: a mode above the Nyquist frequency
@@ -78,7 +80,7 @@ def _first_mode(fit: Fitter, p, struct):
     parameters when one is taken."""
     lo, hi = (MODE_SPAN[0] * fit.fs, MODE_SPAN[1] * fit.fs)
     fit.limits["mech_f"] = (max(100.0, 0.5 * lo), min(25000.0, 1.5 * hi))
-    picks = ("contact", "load") if any("us" in r.channels() for r in fit.recs) else ("stack",)
+    picks = mode_picks(fit)
     starts, qs = [], []
     for pick in picks:
         for f in np.exp(np.linspace(math.log(lo), math.log(hi), 12)):

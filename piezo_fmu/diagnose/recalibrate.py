@@ -39,7 +39,7 @@ from .starts import with_params
 from .stats import compare, near_range_end, noise_level, tau_int
 from .uncertainty import uncertainty
 
-__all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "mode_at", "ordinary_names", "recalibrate"]
+__all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "mode_at", "mode_picks", "ordinary_names", "recalibrate"]
 
 PICKOFFS = ("stack", "contact", "load")
 MODE_RANGE = (100.0, 20000.0)        # [Hz] the first mode's search range
@@ -222,7 +222,7 @@ def _mode(fitter, rc, struct, sat):
     three) and what the sensor follows; kept when the data see them."""
     p = rc.params
     chans = sorted({c for r in fitter.recs for c in r.channels()})
-    picks = _mode_picks(fitter)
+    picks = mode_picks(fitter)
     # a further mode found already may sit elsewhere once the first mode is in: both places
     places = ("output", "drive") if (p.res is not None and "us" in chans) else (p.res_at,)
     f_nom, z_nom = p.mode(fitter.dev)
@@ -292,7 +292,7 @@ def _mode(fitter, rc, struct, sat):
     return _mode_not_identified(rc, p, why, f_nom, z_nom)
 
 
-def _mode_picks(fitter):
+def mode_picks(fitter):
     """The pick-offs a first mode is tried with. A stack's first mode moves the push rod against
     the sensor: a sensor in the load path (the contact force, or the load spring's) sees it. A mode
     in the displacement alone, with a sensor channel recorded, sits after the sensor: a further
@@ -305,7 +305,7 @@ def mode_at(fitter: Fitter, p, struct: Structure, f, zeta, without_items=()):
     pick-off the recorded channels allow, fitted with the ordinary parameters (but those of the
     ordinary items ``without_items``, switched off in ``p``); the best fit, or ``None`` when it
     settles at the end of its search range."""
-    picks = _mode_picks(fitter)
+    picks = mode_picks(fitter)
     gone = {n for it in without_items for n in ITEM_PARAMS[it]} | {"mech_f", "mech_zeta"}
     free = [n for n in fitter.ordinary if n not in gone] + ["mech_f", "mech_zeta"]
     lo, hi = fitter.bounds("mech_f")

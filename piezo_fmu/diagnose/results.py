@@ -343,10 +343,7 @@ def assemble(recs, fitter, dev, model, p_base, p_final, struct_nom, struct_final
                   "rmse_away_from_jumps": final_away,
                   "structured_rms": final_struct_rms, "tests": tests, "verdict": verdict,
                   **({"refitted_between_samples": {
-                      "steps_per_sample": path["steps_per_sample"], "rate_hz": path["rate_hz"],
-                      "structured_rms": path["structured_rms"], "rmse": path["rmse"],
-                      "first_mode": path["first_mode"],
-                      "meaning": "the recalibrated model refitted with that many replay steps per sample "
+                      **path, "meaning": "the recalibrated model refitted with that many replay steps per sample "
                                  "(units as the channels'); asked when nothing is named and more than the "
                                  "ordinary misfit is left at one step per sample"}} if path else {}),
                   "nothing_missing": nothing_missing},
