@@ -199,6 +199,14 @@ MODE_LAG_KEPT = 0.5         # the share of a swap's gain that lags in its moved 
 # its refined loop, -0.01 taken at 2.7 (no other of 72 rig drift or clean cases lies at 1.5-3)
 DRIFT_HOLD_TAKEN = 0.3
 DRIFT_HOLD_STRENGTH = 2.0
+# a displacement drift fitted to the displacement alone explains at least this share of that
+# channel's structured residual, or removes at least DRIFT_OWN_REMOVED x its noise variance: beside
+# another mechanism the drift is a small part of what is left (2026-12-05, the own-channel fits of
+# every case refused this way in the established set and draws 22-23: true drifts beside a delay,
+# a mode, a loop shape or creep 0.04-0.15 of the residual but 1.2-2.5 x the noise variance; the
+# trends that came from the sensor channel 0.00-0.14 and at most 0.54 x)
+DRIFT_OWN_SHARE = 0.15
+DRIFT_OWN_REMOVED = 1.0
 SHAPE_GRID = 6        # steps of the KP cells' Preisach grid over the recorded stack voltages (21 cells)
 SHAPE_GRID_FINE = 8   # the finer grid a named shape may ask for next (36 cells)
 CELL_SUPPORT = 3.3    # see _supported (rig-072's cells out at 3.5-4.9; true shapes' cells 1.2-3.05)
@@ -370,11 +378,12 @@ def other_charge(fitter: Fitter, start):
 
 
 def _own_channel_share(fitter: Fitter, p0, p1, ch):
-    """Share of channel ``ch``'s structured residual that ``p1`` removes over ``p0`` when both are
-    re-solved on that channel alone (the other channel weighted out; each kept as fitted where that
-    fits the channel better than the re-solve). A mechanism acting on one
-    channel must pass this: otherwise its gain came from the other channel via shared parameters.
-    ``None`` when only ``ch`` is recorded (then the joint fit already is the own-channel fit)."""
+    """``(share, removed)``: the share of channel ``ch``'s structured residual that ``p1`` removes
+    over ``p0`` when both are re-solved on that channel alone (the other channel weighted out; each
+    kept as fitted where that fits the channel better than the re-solve), and that removed mean
+    square in units of the channel's noise variance. A mechanism acting on one channel must pass
+    this: otherwise its gain came from the other channel via shared parameters. ``None`` when only
+    ``ch`` is recorded (then the joint fit already is the own-channel fit)."""
     from .varpro import solve_linear
 
     if not all(getattr(r, c) is not None for r in fitter.recs for c in ("x", "us")):
@@ -394,10 +403,12 @@ def _own_channel_share(fitter: Fitter, p0, p1, ch):
         # the re-solve's few saturation steps can land worse than the joint fit on this channel:
         # the values as fitted are then the better own-channel fit
         mse.append(min(channel_mse(q), channel_mse(p)))
-    structured = mse[0] - fitter.noise.get(ch, 0.0) ** 2
+    var = fitter.noise.get(ch, 0.0) ** 2
+    removed = (mse[0] - mse[1]) / var if var > 0 else math.inf
+    structured = mse[0] - var
     if structured <= 0:
-        return 0.0
-    return (mse[0] - mse[1]) / structured
+        return 0.0, removed
+    return (mse[0] - mse[1]) / structured, removed
 
 
 def _mode_band_share(fitter: Fitter, p, f, width=MODE_BAND_WIDTH):
@@ -566,9 +577,9 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
                            f"take {held[0]:.2f} of its correction (test strength {held[1]:.0f}): a trend "
                            "of the moving part, not a drift of the device")
         own = _own_channel_share(fitter, p_before, p_after, "x")
-        if own is not None and own < 0.15:
-            return False, (f"fitted to the displacement alone it explains {100 * max(own, 0):.0f} % of its "
-                           "structured residual: the trend came from the sensor channel through the shared "
-                           "parameters")
+        if own is not None and own[0] < DRIFT_OWN_SHARE and own[1] < DRIFT_OWN_REMOVED:
+            return False, (f"fitted to the displacement alone it explains {100 * max(own[0], 0):.0f} % of "
+                           f"its structured residual and removes {max(own[1], 0):.2f} x its noise variance: "
+                           "the trend came from the sensor channel through the shared parameters")
         return True, ""
     return True, ""
