@@ -1917,6 +1917,26 @@ def test_leakage_is_weighed_against_an_offset_trend_away_from_the_jumps(spy):
     assert res["final"]["rmse"]["us"] < 0.3 * res["baseline"]["rmse"]["us"]
 
 
+def test_leakage_is_weighed_against_an_offset_trend_with_the_noise_at_most_what_it_leaves(spy):
+    # rig-d23-161: leakage (4.8 s) and a loop shape at 2420 Hz, force pick-off. The leakage took the
+    # held-out sensor rmse from 0.0288 to 0.0046 V (z 26); the sensor noise level then stood at
+    # 0.0105 V (the true noise is 0.0003 V), above what either the leakage or a quadratic offset
+    # drift in its place leave, so both structured residuals were 0 V, "as well", and the leakage
+    # was refused. The noise is at most what the leakage model leaves: the quadratic then leaves
+    # 0.0093 V of structure and the leakage is named (with the loop shape)
+    from piezo_fmu.diagnose import catalogue
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig_recording("rig-d23-161")
+    assert sorted(rec.truth["mechanisms"]) == ["hysteresis_shape", "sensor_leakage"]
+    seen = spy(catalogue, "_offset_trend_alternative")
+    res = analyse(raw).result
+    assert "sensor_leakage" in res["final"]["effects"], (res["candidates"], res["rejected"])
+    alt, fit = seen[0]          # [V] structured sensor residual: the quadratic's, the leakage's
+    assert fit == 0.0 and alt > 0.005, seen
+    assert res["final"]["rmse"]["us"] < 0.3 * res["baseline"]["rmse"]["us"]
+
+
 def test_a_drift_beside_creep_is_checked_after_the_search_budget_is_spent():
     # rig-d1-161: logarithmic creep alone. The search named creep (one element, 0.15 s) and then a
     # drift in both channels, and spent its budget; the check whether a further creep element

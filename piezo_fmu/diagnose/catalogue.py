@@ -347,7 +347,10 @@ def _offset_trend_alternative(fitter: Fitter, p):
     a = np.vstack([np.ones_like(t), t, t * t]).T
     coef, *_ = np.linalg.lstsq(a, e0, rcond=None)
     eq = e0 - a @ coef
-    s2 = fitter.noise.get("us", 0.0) ** 2
+    # (the noise is at most what the leakage model leaves: a level estimated above it, or bounded by
+    # this very candidate's held-out rmse, :data:`.stats.NOISE_BOUND`, would leave both at 0 and call
+    # any alternative "as well"; rig-d23-161, 164)
+    s2 = min(fitter.noise.get("us", 0.0) ** 2, float(np.mean(e1 * e1)))
 
     def structured(e):
         return math.sqrt(max(float(np.mean(e * e)) - s2, 0.0))
