@@ -25,7 +25,10 @@ __all__ = ["MODE_RESEARCH", "MODE_RESEARCH_PEAKS", "MODE_RESEARCH_ZETA", "MODE_S
            "swapped_mode", "with_params"]
 
 PEAK_SOLVED_ZETA = (0.015,)   # damping of the residual-peak starts scored with the weights re-solved
-MODE_SWAP_STARTS = (0.4, 0.63, 1.6, 2.5, 4.0, 6.3)   # first mode restarted at these x the old one
+# the first mode restarted at these x the old one (up to 16 x: rig-d23-090, a 283 Hz further mode
+# taken for the first mode, its own 3.1 kHz first mode 11 x above; from 6.3 x at most the swap's
+# first mode went to the range's end, 10.5 kHz, and explained 78 %, from 10 x 97 %)
+MODE_SWAP_STARTS = (0.4, 0.63, 1.6, 2.5, 4.0, 6.3, 10.0, 16.0)
 # the first mode re-searched under a further mode's start: at these multiples of where it was and
 # at the residual's peaks (light and moderate damping), the best by the screening's cost
 MODE_RESEARCH = (0.25, 0.4, 0.5, 0.63, 0.8, 1.25, 1.6, 2.5, 4.0)
