@@ -201,10 +201,13 @@ DRIFT_HOLD_TAKEN = 0.3
 DRIFT_HOLD_STRENGTH = 2.0
 # a displacement drift fitted to the displacement alone explains at least this share of that
 # channel's structured residual, or removes at least DRIFT_OWN_REMOVED x its noise variance: beside
-# another mechanism the drift is a small part of what is left (2026-12-05, the own-channel fits of
-# every case refused this way in the established set and draws 22-23: true drifts beside a delay,
-# a mode, a loop shape or creep 0.04-0.15 of the residual but 1.2-2.5 x the noise variance; the
-# trends that came from the sensor channel 0.00-0.14 and at most 0.54 x)
+# another mechanism the drift is a small part of what is left (2026-12-05: the first own-channel
+# fits of true drifts refused so beside a delay, a mode, a loop shape or creep, rig-d23-019, 047,
+# 087, 149 and rig-d22-056, took 0.04-0.15 of the residual but 1.2-2.5 x the noise variance; the
+# trends from the sensor channel surveyed, 11 cases, 0.00-0.14 and at most 0.54 x. Run again with
+# the rule, the 108 cases of the established set and draws 22-23 where the check had refused a
+# drift changed in one: rig-d23-149 names its creep and drift, and a loop shape found at the
+# search's end beside them)
 DRIFT_OWN_SHARE = 0.15
 DRIFT_OWN_REMOVED = 1.0
 SHAPE_GRID = 6        # steps of the KP cells' Preisach grid over the recorded stack voltages (21 cells)
