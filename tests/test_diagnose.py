@@ -990,6 +990,32 @@ def _rig_recording(case_id):
     return rec, [{"name": case_id, "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
 
 
+def test_a_channel_keeps_its_sign_after_an_excursion_the_nominal_loop_would_hold():
+    # rig-d24-049 (a clean KP device): a 250 V chirp, then one 470 V peak decaying to 0 V over 9 s.
+    # The nominal PI, re-normalised to that span, holds half its stroke through the decay on its
+    # wide plays: its prediction does not follow x, and a sign taken from it negated both channels
+    # (nothing could be fitted after that; a false loop shape 206 x the noise was named). The sign
+    # comes from the nominal dynamics with a linear loop
+    from piezo_fmu.diagnose.engine import Device
+    from piezo_fmu.diagnose.recordings import make_recordings
+    from piezo_fmu.diagnose.run import orient
+
+    rec, raw = _rig_recording("rig-d24-049")
+    recs = make_recordings(raw)
+    model = load_model()
+    dev = device_from_model(model)
+    p = params_from_model(model, recs[0].dt)
+    span = float(np.max(rec.u)) * dev.k_amp
+    assert span / p.u_norm > 3                      # so the diagnosis re-normalises to it, as here
+    p.u_norm = span
+    dev = Device(**{**dev.__dict__, "u_max": 1.05 * span})
+    x = recs[0].x.copy()
+    assert np.corrcoef(predict(recs[0], dev, p)["x"], x)[0, 1] < 0.1
+    assert orient(recs, dev, p) == []
+    assert recs[0].sign == {"x": 1, "us": 1}
+    assert np.array_equal(recs[0].x, x)
+
+
 def test_an_independent_device_is_recalibrated_not_named():
     # rig-046: a clean Krasnosel'skii-Pokrovskii device (not PI) on other thresholds, exercised up to
     # its top voltage before the record, a first mode near 300 Hz and a displacement pick-off. The

@@ -38,7 +38,7 @@ from .select import ACCEPT, full_residuals, noise_levels, residual_sets, select
 from .uncertainty import channel_uncertainty, uncertainty
 from .varpro import solve_linear
 
-__all__ = ["ACCEPT", "Diagnosis", "analyse", "load_recordings"]
+__all__ = ["ACCEPT", "Diagnosis", "analyse", "load_recordings", "orient"]
 
 
 @dataclass
@@ -90,6 +90,34 @@ def analyse(raw, model: Model | None = None, say=None, max_rounds=5, time_budget
         return _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate)
 
 
+def orient(recs, dev: Device, p_nom: Params) -> list[str]:
+    """Set each channel's sign (``r.sign``; a falling channel is negated in place) from the
+    regression of the channel on the nominal dynamics' response with a linear loop (the nominal
+    PI's narrowest play alone); return a note for each negated channel.
+
+    Not on the nominal PI's own prediction: its wide plays hold what a large excursion left for the
+    rest of a record that stays below it (rig-d24-049: one 470 V peak after a 250 V chirp, the
+    nominal PI on thresholds up to 376 V held x at half its stroke through a 9 s decay to 0 V; that
+    prediction correlated -0.016 with x, both channels were negated and nothing could be fitted)."""
+    p_lin = p_nom.copy()
+    p_lin.weights = np.zeros_like(p_nom.weights)
+    p_lin.weights[int(np.argmin(p_nom.thresholds))] = 1.0
+    p_lin.y_sat = math.inf
+    notes = []
+    for r in recs:
+        pr = predict(r, dev, p_lin)
+        for c in r.channels():
+            y = getattr(r, c)
+            a = np.vstack([pr[c], np.ones_like(y)]).T
+            slope = np.linalg.lstsq(a, y, rcond=None)[0][0]
+            r.sign[c] = -1 if slope < 0 else 1
+            if r.sign[c] < 0:
+                setattr(r, c, -y)
+                notes.append(f"{r.name}: {c} falls when the command rises; diagnose works on -{c} "
+                             f"(the model's orientation) and reports in the file's orientation")
+    return notes
+
+
 def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     say = say or (lambda msg: None)
     t_start = time.perf_counter()
@@ -131,18 +159,7 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
         dev = Device(**{**dev.__dict__, "u_min": min(dev.u_min, ua_lo * 1.05 - 1e-9),
                         "u_max": max(dev.u_max, ua_hi * 1.05 + 1e-9)})
 
-    # signs of the channels: regression of each channel on the nominal model's prediction
-    for r in recs:
-        pr = predict(r, dev, p_nom)
-        for c in r.channels():
-            y = getattr(r, c)
-            a = np.vstack([pr[c], np.ones_like(y)]).T
-            slope = np.linalg.lstsq(a, y, rcond=None)[0][0]
-            r.sign[c] = -1 if slope < 0 else 1
-            if r.sign[c] < 0:
-                setattr(r, c, -y)
-                notes.append(f"{r.name}: {c} falls when the command rises; diagnose works on -{c} "
-                             f"(the model's orientation) and reports in the file's orientation")
+    notes += orient(recs, dev, p_nom)
     nominal_as_given = rmse_as_given(recs, dev, p_nom)
 
     # -- 1. recalibration ---------------------------------------------------------------------------
