@@ -98,7 +98,12 @@ SHAPE_EXPLAINED_EACH = 0.7
 # shapes rig-157 and 169 0.48/4.9/3.8 and 0.59/2.1/4.7; other loops: the clean rig-113
 # 0.41/1.87/8.0, rig-107 0.49/5.3/2.5, and of that share and removal rig-072 and 150 0.5 and 1.0
 # from them. rig-158's loop, 0.45/2.6/3.3, had its delay pass beside it: named, its cells took the delay's
-# misfit and both were lost; with the delay first and the loop refined, the delay is named)
+# misfit and both were lost; with the delay first and the loop refined, the delay is named). Nor beside
+# a mechanism named before it (since 2026-12-05): that mechanism's form is not the device's and its
+# misfit is the other misfit the cells bend to. Fresh draws 23 and 24, every loop named this way:
+# beside a creep (rig-d24-024, 0.43/7.3/6.4) and beside a further mode (rig-d24-050 0.57/4.2/7.6, 055
+# 0.43/25.7/3.9) false, beside a false further mode true (rig-d24-089, 0.65/6.1/3.2); alone true
+# (rig-d23-147, just under 0.70/2.5/3.2)
 SHAPE_PARTIAL_EXPLAINED = 0.4
 SHAPE_PARTIAL_REMOVED = 2.0
 SHAPE_PARTIAL_BEYOND = 3.0
@@ -468,6 +473,18 @@ def shape_from_nominal(fitter: Fitter, current: Params, struct, strong, weak, re
         step("hysteresis_shape: held-out z " + ", ".join(f"{c} {z:.1f}" for c, z in z_low.items())
              + f" < {SHAPE_NOMINAL_HELDOUT_Z:g}: confidence at most {SHAPE_NOMINAL_WEAK_RIGHT:.2f} (how often such "
              "a loop was right)")
+        shape = {**shape, "confidence": SHAPE_NOMINAL_WEAK_RIGHT}
+    loop = recal.report.get("loop", {}) if recal is not None else {}
+    beside = sorted(f["name"] for f in strong if f["name"] != "hysteresis_shape")
+    if (beside and loop.get("refined") and loop.get("explained_share", 1.0) < SHAPE_EXPLAINED
+            and shape["confidence"] > SHAPE_NOMINAL_WEAK_RIGHT):
+        # the rounds took this loop in explaining less than SHAPE_EXPLAINED: beside a named mechanism
+        # such a loop is that mechanism's misfit the cells bend to, not named in a round
+        # (SHAPE_PARTIAL_EXPLAINED), and not at the search's end either (rig-d24-055: 43 % beside a
+        # 75 Hz further mode, z 46 at the end)
+        step(f"hysteresis_shape: the rounds took its loop in explaining {100 * loop['explained_share']:.0f} % "
+             f"< {100 * SHAPE_EXPLAINED:.0f} % beside {', '.join(beside)}: confidence at most "
+             f"{SHAPE_NOMINAL_WEAK_RIGHT:.2f}")
         shape = {**shape, "confidence": SHAPE_NOMINAL_WEAK_RIGHT}
     if shape["confidence"] < CONFIDENT:
         step(f"hysteresis_shape: confidence {shape['confidence']:.2f} < {CONFIDENT}: a candidate, not named")
