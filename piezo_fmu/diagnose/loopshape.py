@@ -477,11 +477,13 @@ def shape_from_nominal(fitter: Fitter, current: Params, struct, strong, weak, re
     loop = recal.report.get("loop", {}) if recal is not None else {}
     beside = sorted(f["name"] for f in strong if f["name"] != "hysteresis_shape")
     if (beside and loop.get("refined") and loop.get("explained_share", 1.0) < SHAPE_EXPLAINED
+            and loop.get("removed_noise_multiples", 0.0) >= SHAPE_PARTIAL_REMOVED
             and shape["confidence"] > SHAPE_NOMINAL_WEAK_RIGHT):
-        # the rounds took this loop in explaining less than SHAPE_EXPLAINED: beside a named mechanism
+        # the rounds took this loop in as a partial one (SHAPE_PARTIAL_*): beside a named mechanism
         # such a loop is that mechanism's misfit the cells bend to, not named in a round
-        # (SHAPE_PARTIAL_EXPLAINED), and not at the search's end either (rig-d24-055: 43 % beside a
-        # 75 Hz further mode, z 46 at the end)
+        # (SHAPE_PARTIAL_EXPLAINED), and not at the search's end either (rig-d24-055: 43 % and 25.7 x
+        # the noise beside a 75 Hz further mode, z 46 at the end). One that removed less was refused
+        # for that and keeps its chance here (rig-075: 56 % and 1.26 x beside a further mode, true)
         step(f"hysteresis_shape: the rounds took its loop in explaining {100 * loop['explained_share']:.0f} % "
              f"< {100 * SHAPE_EXPLAINED:.0f} % beside {', '.join(beside)}: confidence at most "
              f"{SHAPE_NOMINAL_WEAK_RIGHT:.2f}")

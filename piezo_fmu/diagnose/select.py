@@ -435,8 +435,8 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             # beside a mechanism already named, its misfit (its model is not the device's) is other misfit
             # the cells bend to (SHAPE_BESIDE_BEYOND); a partial loop is named alone (SHAPE_PARTIAL_EXPLAINED)
             beside = sorted(e for e in struct.effects if e != "hysteresis_shape")
-            partial = (removed >= SHAPE_PARTIAL_REMOVED and SHAPE_PARTIAL_EXPLAINED <= explained < SHAPE_EXPLAINED
-                       and not beside and not any(t["passed"] and t["name"] != "hysteresis_shape" for t in tried))
+            part = removed >= SHAPE_PARTIAL_REMOVED and SHAPE_PARTIAL_EXPLAINED <= explained < SHAPE_EXPLAINED
+            partial = part and not beside and not any(t["passed"] and t["name"] != "hysteresis_shape" for t in tried)
             asks = strong or (weak and not one_channel) or partial
             far_enough = SHAPE_BESIDE_BEYOND if beside else SHAPE_PARTIAL_BEYOND if partial else SHAPE_BEYOND
             beyond = max(beyond_classical(fitter, best["fit"].params, noise).values()) if asks else 0.0
@@ -455,7 +455,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                           "structured residual: the finer grid does not draw the device's loop, a loop "
                           "of another family" if far_out else "") if asks else
                        f"; {100 * everywhere:.0f} % on its weakest channel" if one_channel else
-                       f"; beside {', '.join(beside)}: named from {SHAPE_EXPLAINED:.0%}" if beside else "")
+                       f"; beside {', '.join(beside)}: named from {SHAPE_EXPLAINED:.0%}" if part and beside else "")
                 if asks and beside and not partial and beyond >= SHAPE_BEYOND:   # (named as a loop alone)
                     far += f"; beside {', '.join(beside)} it must lie {far_enough:g} x the noise from them"
                 step(f"round {rnd + 1}: the finer loop explains {100 * explained:.0f} % ({removed:.2f} x the "
