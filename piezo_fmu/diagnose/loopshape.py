@@ -103,7 +103,7 @@ SHAPE_EXPLAINED_EACH = 0.7
 # misfit is the other misfit the cells bend to. Fresh draws 23 and 24, every loop named this way:
 # beside a creep (rig-d24-024, 0.43/7.3/6.4) and beside a further mode (rig-d24-050 0.57/4.2/7.6, 055
 # 0.43/25.7/3.9) false, beside a false further mode true (rig-d24-089, 0.65/6.1/3.2); alone true
-# (rig-d23-147, just under 0.70/2.5/3.2)
+# (rig-d23-147, just under 0.70/2.5/3.2). On the established set rig-157 above (beside its leakage, true)
 SHAPE_PARTIAL_EXPLAINED = 0.4
 SHAPE_PARTIAL_REMOVED = 2.0
 SHAPE_PARTIAL_BEYOND = 3.0
