@@ -24,13 +24,14 @@ import numpy as np
 from ..errors import UserError
 from ..model import Model, load_model
 from . import locate, workers
-from .between import between_samples
+from .between import between_samples, delay_between
 from .budget import TIME_BUDGET_S, WORK_PER_S
 from .blas import single_thread
 from .engine import Device, Params, device_from_model, params_from_model, predict
 from .fit import Fitter, Structure, strip
 from .heap import kept
-from .recalibrate import ordinary_names, recalibrate, revisit
+from .decide import CONFIDENT
+from .recalibrate import adopt_mode, ordinary_names, recalibrate, revisit
 from .recordings import load_recordings, make_recordings
 from .residuals import residual_peaks
 from .results import assemble, file_predictions, localise, rmse_as_given, to_model
@@ -242,6 +243,16 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     notes += [n for n in recal.notes if n not in notes]
     if fitter.ordinary != ordinary_before:
         revisited[0] = True          # an ordinary item found during the selection (a first mode)
+    p_from = p_final                 # where the recalibrated nominal model is refitted from
+    if "time_delay" not in struct_final.effects and not fitter.out_of_time():
+        late = delay_between(fitter, p_final, struct_final, noise, cctx, step)
+        if late is not None and _late_delay(late, recal, findings, candidates, rejected, step):
+            # from here on the recordings are replayed between their samples (the model, its
+            # report and its re-run with them)
+            fitter, recs = late["fitter"], late["fitter"].recs
+            struct_final = late["struct"]
+            p_final = fitter.fit(late["fit"].params, struct_final, max_nfev=15).params
+            p_from, revisited[0] = late["base"], True
     timing["selection_s"] = time.perf_counter() - t_start - timing["recalibration_s"]
     # the work counted up to here (recalibration and search) in seconds of the reference machine:
     # against the seconds it took, how this machine and this recording's kind of work compare
@@ -257,7 +268,7 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
         p_base, struct_nom = p_final, struct_final
     elif revisited[0] or struct_base.refined:
         step("re-fitting the recalibrated nominal model with the ordinary physics found since")
-        fr = fitter.fit(strip(p_final, struct_base, p_base.thresholds), struct_base, max_nfev=10)
+        fr = fitter.fit(strip(p_from, struct_base, p_base.thresholds), struct_base, max_nfev=10)
         # a refit that ends far worse than the nominal model it replaces has diverged (rig-025:
         # the final model's first mode had moved onto a further mode; without that mode the refit
         # ended at 4e4 times the training cost, 183 um rms against 0.5): the nominal model stays.
@@ -292,6 +303,34 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     return Diagnosis(recs, model, nominal_model, final_model, p_base, p_final, struct_nom, struct_final,
                      result, preds_nom, preds_fin, ctxs, timing,
                      {"fitter": fitter, "recal": recal, "noise": noise, "cctx": cctx})
+
+
+def _late_delay(late, recal, findings, candidates, rejected, step):
+    """File the delay :func:`.between.delay_between` tested: a finding (True: the diagnosis goes on
+    with its replay), a candidate or a refusal."""
+    fr, cmp = late["fit"], late["cmp"]
+    nd = round(fr.params.delay / late["fitter"].dt)
+    if not late["passed"]:
+        step(f"time_delay between the samples: fails ({late['why']})")
+        rejected.append({"effect": "time_delay", "why": f"replayed between the samples: {late['why']}",
+                         **({"at_bound": late["bounds"]} if late["bounds"] else {})})
+        return False
+    f, z = fr.params.mode(late["fitter"].dev)
+    entry = {"name": "time_delay", "cmp": cmp, "before": late["base"], "after": fr.params,
+             "note": (f"{nd} sample(s), found with the recording replayed between its samples (first mode "
+                      f"{f:.4g} Hz, zeta {z:.3g} beside it)" + (f"; {late['note']}" if late["note"] else "")),
+             "alt_share": 0.0, "alternatives": [], "rival": None, "rmse_after": late["rmse_after"],
+             "confidence": late["confidence"]}
+    step(f"time_delay between the samples: passes, {nd} sample(s), confidence {late['confidence']:.2f}")
+    candidates[:] = [c for c in candidates if c["name"] != "time_delay"]    # (the search's, at one step)
+    if late["confidence"] < CONFIDENT:
+        candidates.append(entry)
+        return False
+    findings.append(entry)
+    if late["mode_added"]:
+        adopt_mode(late["fitter"], recal, fr.params, "found beside the delay, with the recording replayed "
+                                                     "between its samples")
+    return True
 
 
 def _nominal_structure(p: Params) -> Structure:
