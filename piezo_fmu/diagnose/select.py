@@ -46,7 +46,7 @@ from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, creep_before_drift, 
 from .starts import swapped_mode
 from .stats import compare
 
-__all__ = ["ACCEPT", "CONFIDENT", "confidence", "full_residuals", "noise_levels", "put_in",
+__all__ = ["ACCEPT", "CONFIDENT", "FAST", "confidence", "full_residuals", "noise_levels", "put_in",
            "residual_sets", "select"]
 
 
