@@ -130,9 +130,11 @@ def _first_mode(fit: Fitter, p, struct):
 # a delay the replay between the samples is searched at: whole samples (a one-step replay cannot
 # draw one beside a fast lag), each with the first mode started at these multiples of the sample
 # rate (the one-step search had put its mode where the delay's phase lag asked, far below the
-# device's: rig-d24-000's 120 Hz for 1036 Hz, fitted beside the delay at 470 Hz; rig-d24-100's 315)
+# device's: rig-d24-000's 120 Hz for 1036 Hz, fitted beside the delay at 470 Hz; rig-d24-100's 315;
+# or above it: rig-d25-050's 723 Hz for 470, at 1.2 kHz, which starts at 0.3 and 0.8 x the rate
+# did not reach, 0.4 does)
 DELAY_SAMPLES = (1, 2, 3)
-DELAY_MODE_SPAN = (0.3, 0.8, 1.6)
+DELAY_MODE_SPAN = (0.25, 0.4, 0.6, 0.8, 1.1, 1.6)
 DELAY_FITTED = 2          # the best starts (weights held, gains and offsets re-solved) fitted
 
 
@@ -141,7 +143,8 @@ def delay_between(fitter: Fitter, p, struct, noise, cctx, step=None):
 
     ``p`` (the search's final model, no delay in ``struct``) is refitted at the finer replay (its
     ordinary parameters; a first mode searched when none was found), then with a delay of
-    :data:`DELAY_SAMPLES` beside a first mode from :data:`DELAY_MODE_SPAN`; the better fit is
+    :data:`DELAY_SAMPLES` beside the refitted first mode or one started from
+    :data:`DELAY_MODE_SPAN`; the better fit is
     tested on the held-out data as a round of the search tests a candidate.
 
     Returns
@@ -170,18 +173,20 @@ def delay_between(fitter: Fitter, p, struct, noise, cctx, step=None):
     free = [n for n in fit.ordinary if n not in ("mech_f", "mech_zeta")] + ["mech_f", "mech_zeta"]
     total = base.tau + base.tau2
     tau_lo = 1.5 * fit.bounds("tau")[0]
+    # the first mode where the refit left it (with its pick-off), and started afresh
+    modes = [(base.pick, None)] + [(pick, span) for span in DELAY_MODE_SPAN for pick in mode_picks(fit)]
     starts = []
     for k in DELAY_SAMPLES:
-        for span in DELAY_MODE_SPAN:
-            for pick in mode_picks(fit):
-                r = base.copy()
-                r.delay = k * dt
-                # the total lag roughly conserved: the delay takes its share from the first stage
-                r.tau = max(base.tau - k * dt, 0.25 * total, tau_lo)
-                r.pick = pick
+        for pick, span in modes:
+            r = base.copy()
+            r.delay = k * dt
+            # the total lag roughly conserved: the delay takes its share from the first stage
+            r.tau = max(base.tau - k * dt, 0.25 * total, tau_lo)
+            r.pick = pick
+            if span is not None:
                 r.set_mode(fit.dev, f=float(np.clip(span * fs, 1.02 * f_lo, f_hi / 1.02)),
                            zeta=float(max(0.05, z_lo)))
-                starts.append(r)
+            starts.append(r)
     order = np.argsort(fit.quick_many(starts), kind="stable")[:DELAY_FITTED]
     best = min((fit.fit(starts[i], s_new, free=free, max_nfev=10, held=True) for i in order),
                key=lambda fr: fr.cost)
