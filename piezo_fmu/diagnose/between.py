@@ -32,9 +32,10 @@ from .catalogue import plausible
 from .decide import at_bound, confidence, own_parameters, passes
 from .engine import predict
 from .fit import Fitter, free_names
+from .loopshape import nominal_distance
 from .recalibrate import mode_at, mode_picks
 from .recordings import INTERNAL_RATE, internal_steps
-from .residuals import heldout_rmse, residual_sets
+from .residuals import ACCEPT, heldout_rmse, residual_sets
 from .rivals import sampling_lag_rival
 from .stats import compare
 
@@ -136,9 +137,20 @@ def _first_mode(fit: Fitter, p, struct):
 DELAY_SAMPLES = (1, 2, 3)
 DELAY_MODE_SPAN = (0.25, 0.4, 0.6, 0.8, 1.1, 1.6)
 DELAY_FITTED = 2          # the best starts (weights held, gains and offsets re-solved) fitted
+# not asked when the search's final loop lies this far (noise rms) from every classical loop of the
+# nominal operators: a loop shape's misfit is left, and a delay's phase lag widens the loop on a slow
+# drive (rig-d25-137, a missed KP loop shape at 660 Hz, 4.97: a false two-sample delay at confidence
+# 1.00; rig-045's current limit, 8.47). The delays it names lie at 0.00-2.52 (rig draws 24 and 25);
+# rig draw 10's final loops: shapes 4.1-55, none 0.01-1.7, 2.3 and 3.4 where a mechanism was missed
+DELAY_LOOP_FAR = 4.0
+# ... and beat a second amplifier stage in its place by this BIC (the search's LAG_EVIDENCE asks 2 of
+# a delay found at one step per sample; found afterwards at another replay, a delay meets the
+# evidence a mechanism needs: rig-d25-160, a clean device at 5.04 kHz with a 1.08 + 0.38 ms
+# amplifier, named a two-sample delay at 0.61 that beat that stage by 5.8)
+DELAY_LAG_EVIDENCE = ACCEPT["dbic"]
 
 
-def delay_between(fitter: Fitter, p, struct, noise, cctx, step=None):
+def delay_between(fitter: Fitter, p, struct, noise, cctx, thresholds, step=None):
     """A command delay searched with the recordings replayed at :data:`INTERNAL_RATE` inside.
 
     ``p`` (the search's final model, no delay in ``struct``) is refitted at the finer replay (its
@@ -153,11 +165,17 @@ def delay_between(fitter: Fitter, p, struct, noise, cctx, step=None):
         None when every recording is sampled at :data:`INTERNAL_RATE` or faster; else ``fitter``
         (the finer replay's), ``base`` (``p`` refitted there), ``fit`` (with the delay), ``struct``,
         ``cmp``, ``passed``, ``why``, ``note``, ``bounds``, ``confidence`` and ``mode_added`` (the
-        first mode was not an ordinary item before).
+        first mode was not an ordinary item before); without ``fit`` when the final loop lies
+        :data:`DELAY_LOOP_FAR` or further from the classical loops on ``thresholds`` (the nominal
+        operators') and nothing was searched.
     """
     fit = fine_fitter(fitter)
     if fit is None:
         return None
+    far = nominal_distance(fitter, p, noise, thresholds)[0]
+    if far >= DELAY_LOOP_FAR:
+        return {"passed": False, "bounds": [], "why": f"not searched: the final loop lies {far:.2f} x the noise "
+                                                      "from every classical loop (a loop shape's misfit is left)"}
     fs, dt = fit.fs, fitter.dt
     if step:
         step(f"searching a command delay with the recording replayed at {max(r.oversample for r in fit.recs)} "
@@ -197,6 +215,13 @@ def delay_between(fitter: Fitter, p, struct, noise, cctx, step=None):
     ok = plausible("time_delay", fit, base, best.params, cmp, cctx, s_new)
     bounds = at_bound(fit, best.params, own_parameters("time_delay", struct, s_new) + ["mech_f", "mech_zeta"])
     passed, why = passes(cmp, "time_delay", ok, bounds)
+    if passed:
+        lag, worth = _second_stage(fit, best, struct, free)
+        if lag is not None:
+            passed, why = False, lag
+        else:
+            ok = (ok[0], "; ".join(n for n in (ok[1], f"beats a second amplifier stage in its place by BIC "
+                                                       f"{worth:.1f}") if n))
     return {"fitter": fit, "base": base, "fit": best, "struct": s_new, "cmp": cmp, "passed": passed,
             "why": why, "note": ok[1], "bounds": bounds, "mode_added": not had_mode,
             # (with one channel a delay of whole samples is that channel's sampling lag as well: a coin
@@ -204,3 +229,20 @@ def delay_between(fitter: Fitter, p, struct, noise, cctx, step=None):
             "confidence": confidence(cmp, "time_delay", 1.0 if sampling_lag_rival(fit, best.params) else 0.0)
             if passed else 0.0, "sets": sets1,
             "rmse_after": heldout_rmse(sets1)}
+
+
+def _second_stage(fit: Fitter, best, struct, free):
+    """``(why, worth)``: why the delay of ``best`` (a fit) is the amplifier's lag, or None, and the
+    BIC by which the delay beats a second lag stage of its length (added to the one there) fitted in
+    its place with ``free``; it must beat it by :data:`DELAY_LAG_EVIDENCE`, as the search asks
+    :data:`.rivals.LAG_EVIDENCE` of a delay it finds."""
+    q = best.params.copy()
+    q.tau2 = q.tau2 + q.delay
+    q.delay = 0.0
+    fr = fit.fit(q, struct, free=[n for n in free if n != "tau2"] + ["tau2"], max_nfev=10, held=True)
+    worth = fit.n_eff * math.log(max(fr.cost, 1e-300) / max(best.cost, 1e-300))
+    lo, hi = fit.bounds("tau2")
+    if worth >= DELAY_LAG_EVIDENCE or not lo * 1.05 < fr.params.tau2 < hi / 1.05:
+        return None, worth
+    return (f"a second amplifier lag stage in its place ({1e3 * fr.params.tau:.3g} + {1e3 * fr.params.tau2:.3g} ms) "
+            f"explains the data as well (the delay would gain BIC {worth:.1f} < {DELAY_LAG_EVIDENCE:g})"), worth

@@ -247,7 +247,7 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     # (not beside a fast mechanism named at one step per sample: its own misfit between the samples is
     # what a delay takes up there; rig-045, a current limit at 2.5 kHz, gained a false one at 0.58)
     if not FAST & set(struct_final.effects) and not fitter.out_of_time():
-        late = delay_between(fitter, p_final, struct_final, noise, cctx, step)
+        late = delay_between(fitter, p_final, struct_final, noise, cctx, p_base.thresholds, step)
         if late is not None and _late_delay(late, recal, findings, candidates, rejected, step):
             # from here on the recordings are replayed between their samples (the model, its
             # report and its re-run with them)
@@ -310,20 +310,21 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
 def _late_delay(late, recal, findings, candidates, rejected, step):
     """File the delay :func:`.between.delay_between` tested: a finding (True: the diagnosis goes on
     with its replay), a candidate or a refusal."""
-    fr, cmp = late["fit"], late["cmp"]
-    nd = round(fr.params.delay / late["fitter"].dt)
     if not late["passed"]:
         step(f"time_delay between the samples: fails ({late['why']})")
         rejected.append({"effect": "time_delay", "why": f"replayed between the samples: {late['why']}",
                          **({"at_bound": late["bounds"]} if late["bounds"] else {})})
         return False
+    fr, cmp = late["fit"], late["cmp"]
+    nd = round(fr.params.delay / late["fitter"].dt)
     f, z = fr.params.mode(late["fitter"].dev)
     entry = {"name": "time_delay", "cmp": cmp, "before": late["base"], "after": fr.params,
              "note": (f"{nd} sample(s), found with the recording replayed between its samples (first mode "
                       f"{f:.4g} Hz, zeta {z:.3g} beside it)" + (f"; {late['note']}" if late["note"] else "")),
              "alt_share": 0.0, "alternatives": [], "rival": None, "rmse_after": late["rmse_after"],
              "confidence": late["confidence"]}
-    step(f"time_delay between the samples: passes, {nd} sample(s), confidence {late['confidence']:.2f}")
+    step(f"time_delay between the samples: passes, {nd} sample(s), confidence {late['confidence']:.2f}"
+         + (f" ({late['note']})" if late["note"] else ""))
     candidates[:] = [c for c in candidates if c["name"] != "time_delay"]    # (the search's, at one step)
     if late["confidence"] < CONFIDENT:
         candidates.append(entry)
