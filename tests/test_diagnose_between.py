@@ -58,7 +58,7 @@ def test_a_one_sample_delay_beside_a_fast_lag_is_named_between_the_samples(rig_d
     # first mode. At one step per sample a 1.07 ms lag and a 120 Hz mode with zeta 0.23 replay the
     # record to the noise and the search named nothing; replayed with 15 steps per sample the delay
     # beside a first mode fits better than any account without it (BIC gain 350, held-out beta 0.93
-    # at z 18.6; measured, stop 79)
+    # at z 18.6 with the first version of the search; confidence 0.93 with the final one; stop 79)
     res = rig_diagnosis("rig-d24-000")
     fin = res["final"]
     assert fin["effects"] == ["time_delay"], fin["verdict"]
