@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import piezo_fmu.diagnose.run as run_module
 from piezo_fmu.cli import main
 from piezo_fmu.diagnose import diagnose
 from piezo_fmu.diagnose.engine import Recording, device_from_model, params_from_model, predict
@@ -1491,6 +1492,7 @@ def test_a_further_mode_that_does_not_ring_at_its_frequency_is_not_named(monkeyp
     monkeypatch.setattr(select, "swapped_mode", lambda *args: None)
     propose = select.propose
     monkeypatch.setattr(select, "propose", lambda name, *a: None if name == "time_delay" else propose(name, *a))
+    monkeypatch.setattr(run_module, "delay_between", lambda *a, **k: None)    # (and not searched afterwards)
     res = analyse(raw).result
     assert "extra_resonance" not in res["final"]["effects"], res["findings"]
     why = [r["why"] for r in res["rejected"] if r["effect"] == "extra_resonance"]
@@ -1763,8 +1765,10 @@ def test_a_delay_beside_a_true_first_mode_is_found_without_the_second_lag_stage(
     assert d.p_final.tau2 == 0.0                                         # the delay in its place
     noise_x = rec.truth["params"]["probe.noise_rms"]["value"] * rec.truth["params"]["probe.gain"]["value"]
     assert d.search["noise"]["x"] == pytest.approx(noise_x, rel=0.15)
-    # screened only without every ordinary item at once (the rule before): nothing is named
+    # screened only without every ordinary item at once (the rule before): the search names nothing
+    # (the delay searched between the samples afterwards, stop 79, switched off)
     monkeypatch.setattr(select, "ALONE", {})
+    monkeypatch.setattr(run_module, "delay_between", lambda *a, **k: None)
     assert analyse(raw).result["final"]["effects"] == []
 
 
