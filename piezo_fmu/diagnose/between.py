@@ -222,12 +222,16 @@ def delay_between(fitter: Fitter, p, struct, noise, cctx, thresholds, step=None)
         else:
             ok = (ok[0], "; ".join(n for n in (ok[1], f"beats a second amplifier stage in its place by BIC "
                                                        f"{worth:.1f}") if n))
+    lagged = sampling_lag_rival(fit, best.params)
     return {"fitter": fit, "base": base, "fit": best, "struct": s_new, "cmp": cmp, "passed": passed,
             "why": why, "note": ok[1], "bounds": bounds, "mode_added": not had_mode,
             # (with one channel a delay of whole samples is that channel's sampling lag as well: a coin
             # toss, as in the search)
-            "confidence": confidence(cmp, "time_delay", 1.0 if sampling_lag_rival(fit, best.params) else 0.0)
-            if passed else 0.0, "sets": sets1,
+            "confidence": confidence(cmp, "time_delay", 1.0 if lagged else 0.0) if passed else 0.0,
+            "rival": {"effect": "sampling_lag", "passed": True, "explained_share": {
+                c: round(v["explained"], 4) for c, v in cmp["channels"].items()},
+                "why": "one recorded channel: a lag of whole samples of that channel gives the same model"}
+            if lagged else None, "sets": sets1,
             "rmse_after": heldout_rmse(sets1)}
 
 

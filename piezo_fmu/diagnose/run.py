@@ -321,14 +321,15 @@ def _late_delay(late, recal, findings, candidates, rejected, step):
     entry = {"name": "time_delay", "cmp": cmp, "before": late["base"], "after": fr.params,
              "note": (f"{nd} sample(s), found with the recording replayed between its samples (first mode "
                       f"{f:.4g} Hz, zeta {z:.3g} beside it)" + (f"; {late['note']}" if late["note"] else "")),
-             "alt_share": 0.0, "alternatives": [], "rival": None, "rmse_after": late["rmse_after"],
-             "confidence": late["confidence"]}
+             "alt_share": 0.0 if late["rival"] is None else 1.0, "alternatives": [], "rival": late["rival"],
+             "rmse_after": late["rmse_after"], "confidence": late["confidence"]}
     step(f"time_delay between the samples: passes, {nd} sample(s), confidence {late['confidence']:.2f}"
          + (f" ({late['note']})" if late["note"] else ""))
-    candidates[:] = [c for c in candidates if c["name"] != "time_delay"]    # (the search's, at one step)
     if late["confidence"] < CONFIDENT:
-        candidates.append(entry)
+        if not any(c["name"] == "time_delay" for c in candidates):     # (the search's, at one step, stays)
+            candidates.append(entry)
         return False
+    candidates[:] = [c for c in candidates if c["name"] != "time_delay"]
     findings.append(entry)
     if late["mode_added"]:
         adopt_mode(late["fitter"], recal, fr.params, "found beside the delay, with the recording replayed "
