@@ -99,13 +99,20 @@ def between_samples(fitter: Fitter, p, struct, noise, step=None):
 MODE_SPAN = (0.3, 2.0)
 
 
+def _mode_span(fit: Fitter):
+    """Where a first mode is searched at the finer replay (:data:`MODE_SPAN` of the sample rate, in
+    Hz); sets ``fit``'s search range for it a little wider."""
+    lo, hi = (MODE_SPAN[0] * fit.fs, MODE_SPAN[1] * fit.fs)
+    fit.limits["mech_f"] = (max(100.0, 0.5 * lo), min(25000.0, 1.5 * hi))
+    return lo, hi
+
+
 def _first_mode(fit: Fitter, p, struct):
     """``p`` with the first mode that fits the finely replayed recordings best (screened over
     :data:`MODE_SPAN` with the weights held, the best two starts fitted with every pick-off the
     channels allow), or ``p`` itself when none fits better; ``fit.ordinary`` gains the mode's
     parameters when one is taken."""
-    lo, hi = (MODE_SPAN[0] * fit.fs, MODE_SPAN[1] * fit.fs)
-    fit.limits["mech_f"] = (max(100.0, 0.5 * lo), min(25000.0, 1.5 * hi))
+    lo, hi = _mode_span(fit)
     picks = mode_picks(fit)
     starts, qs = [], []
     for pick in picks:
@@ -183,8 +190,7 @@ def delay_between(fitter: Fitter, p, struct, noise, cctx, thresholds, step=None)
     had_mode = "mech_f" in fit.ordinary
     q = p if had_mode else _first_mode(fit, p, struct)
     base = fit.fit(q, struct, free=free_names(struct, fit.ordinary), max_nfev=10, held=True).params
-    lo, hi = (MODE_SPAN[0] * fs, MODE_SPAN[1] * fs)
-    fit.limits["mech_f"] = (max(100.0, 0.5 * lo), min(25000.0, 1.5 * hi))
+    _mode_span(fit)
     f_lo, f_hi = fit.bounds("mech_f")
     z_lo = 1.2 * fit.bounds("mech_zeta")[0]
     s_new = struct.with_effect("time_delay", 0, len(p.creep))
