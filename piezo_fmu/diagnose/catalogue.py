@@ -186,6 +186,11 @@ LIMIT_BRIEF_EXPLAINED = 0.9
 LIMIT_BRIEF_BETA = (0.8, 1.25)
 MODE_BAND_WIDTH = 1.25   # that band: f_n / width .. f_n * width
 MODE_SWAP_EXPLAINED = 0.8   # the share of the structured residual such a further mode must explain
+# ... unless this share of what the swap changes lies near the moved mode (f1 / 1.25 .. 1.25 f1, below
+# Nyquist): it rings there, a second mode (swaps refused in rig draws 0, 23-25, 2026-12-05: true second
+# modes 0.28 (rig-d25-010: 958 Hz beside a 582 Hz further mode), 0.44 (rig-d25-015); a device's own
+# mode drawn another way 0.00-0.08 (rig-004, 149, d23-084, d23-180, d24-169, d25-026: 42-67 % explained))
+MODE_MOVED_RINGS = 0.2
 MODE_LIGHT = 0.15           # a mode's damping ratio up to which it rings (above: it may only add phase lag)
 MODE_LAG_KEPT = 0.5         # the share of a swap's gain that lags in its moved mode's place may keep
                             # (swaps' moved modes past MODE_LIGHT, 2026-11-29: rig-004 0.95, rig-d8-112
@@ -417,13 +422,14 @@ def _own_channel_share(fitter: Fitter, p0, p1, ch):
     return (mse[0] - mse[1]) / structured, removed
 
 
-def _mode_band_share(fitter: Fitter, p, f, width=MODE_BAND_WIDTH):
-    """Share of what the further mode of ``p`` itself changes (``p`` against ``p`` without it, every
-    other value kept) that lies within ``f / width .. f * width`` [Hz], over every recorded channel
-    (energies of the change's spectrum, its mean removed). A lightly damped mode rings at its own
-    frequency; a "mode" that changes the response mostly elsewhere reshapes another part of it."""
-    q = p.copy()
-    q.res = None
+def _mode_band_share(fitter: Fitter, p, f, q=None, width=MODE_BAND_WIDTH):
+    """Share of what the further mode of ``p`` itself changes (``p`` against ``q``, by default ``p``
+    without it, every other value kept) that lies within ``f / width .. f * width`` [Hz], over every
+    recorded channel (energies of the change's spectrum, its mean removed). A lightly damped mode
+    rings at its own frequency; a "mode" changing the response mostly elsewhere reshapes another part."""
+    if q is None:
+        q = p.copy()
+        q.res = None
     near = total = 0.0
     for r in fitter.recs:
         a, b = predict(r, fitter.dev, p, direct=True), predict(r, fitter.dev, q, direct=True)
@@ -531,10 +537,13 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
             # model left (rig-119: a 148 Hz mode in series taken as the first mode, the true one
             # found at 487 Hz, explains 100 %, rig-089 86 %; a device's own mode drawn the other way: 25-44 %)
             explained = max(v["explained"] for v in ch.values())
-            if explained < MODE_SWAP_EXPLAINED:
+            # ... or when the moved mode rings where it was moved to: a second mode of the device
+            rings = _mode_band_share(fitter, p_after, f1, q=p_before) if f1 < 0.45 / dt else 0.0
+            if explained < MODE_SWAP_EXPLAINED and rings < MODE_MOVED_RINGS:
                 return False, (f"it takes the place of the recalibrated first mode ({f0:.4g} Hz) and moves "
                                f"that to {f1:.4g} Hz, but explains only {100 * explained:.0f} % of the "
-                               "structured residual: the device's own mode drawn another way, not a "
+                               f"structured residual, and only {100 * rings:.0f} % of what it changes lies "
+                               f"near {f1:.4g} Hz: the device's own mode drawn another way, not a "
                                "further one")
             # two modes only when both ring: a moved "mode" damped beyond MODE_LIGHT may only add lag
             # (rig-004: 710 Hz at zeta 0.35 for a delay fitted a sample short), but a device's own
