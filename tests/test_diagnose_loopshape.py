@@ -451,10 +451,12 @@ def test_a_loop_found_at_the_search_end_is_as_confident_as_the_lower_end_of_its_
     assert (right, found) == (26, 38)
     assert loopshape.SHAPE_NOMINAL_RIGHT == pytest.approx(0.5817, abs=1e-4)
     assert CONFIDENT < loopshape.SHAPE_NOMINAL_RIGHT < right / found
-    # below the held-out bar: right in 2 of 8, a candidate whatever its own confidence
-    assert loopshape.SHAPE_NOMINAL_WEAK == (2, 8)
-    assert loopshape.SHAPE_NOMINAL_WEAK_RIGHT == pytest.approx(0.1089, abs=1e-4)
-    assert loopshape.SHAPE_NOMINAL_WEAK_RIGHT < CONFIDENT
+    # below the held-out bar: right in 2 of 8 when the bar was set (0.1089), 12 of 30 with draws 23-26
+    # counted (stop 80): a candidate whatever its own confidence, as often right as the lower end says
+    assert loopshape._wilson_lower(2, 8, loopshape.SHAPE_NOMINAL_Z) == pytest.approx(0.1089, abs=1e-4)
+    assert loopshape.SHAPE_NOMINAL_WEAK == (12, 30)
+    assert loopshape.SHAPE_NOMINAL_WEAK_RIGHT == pytest.approx(0.2935, abs=1e-4)
+    assert loopshape.SHAPE_NOMINAL_WEAK_RIGHT < 12 / 30 < CONFIDENT
 
 
 def test_a_loop_at_the_search_end_without_a_held_out_z_is_a_candidate(monkeypatch):
