@@ -119,9 +119,7 @@ def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
     if not rc.report.get("first_mode", {}).get("identified") and (
             not fitter.out_of_time() or "first_mode" not in rc.report):
         step("recalibrating the first mode of the mechanics and what the sensor channel follows")
-        if _mode(fitter, rc, struct, sat):
-            changed = True
-            _lag_again(fitter, rc, struct)
+        changed |= _mode(fitter, rc, struct, sat)
     if not rc.report.get("sampling_lags", {}).get("identified") and (
             not fitter.out_of_time() or "sampling_lags" not in rc.report):
         step("recalibrating the channels' sampling lags")
@@ -424,19 +422,6 @@ def _threshold_scale_fit(fitter, rc, struct, sat, start):
                                     else f"not clearly better (BIC gain {gain:.1f})",
                                     "bic_gain": 0.0 if edge else round(gain, 1)}
     return False
-
-
-def _lag_again(fitter, rc, struct):
-    """The amplifier lag searched again over its whole range once the first mode has moved: fitted
-    with the nominal mechanics (step 1) it may stand in for them, and the fits after start from there
-    (rig-d26-094, clean: 1.65 ms beside a 741 Hz mode at zeta 0.14; searched again 0.39 ms beside
-    744 Hz at zeta 0.013, a 12 x lower cost; the device 0.27 + 0.10 ms, 746 Hz, zeta 0.011). Kept
-    when it fits better with the weights re-solved; the refit of every ordinary item follows."""
-    q, cost = fitter.fit_scalar(rc.params, struct, "tau")
-    now = rc.params.copy()
-    r = fitter.varpro(now, struct)
-    if cost < float(r @ r):
-        rc.params = q
 
 
 def _order(fitter, rc, struct, sat):
