@@ -537,14 +537,14 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
             # model left (rig-119: a 148 Hz mode in series taken as the first mode, the true one
             # found at 487 Hz, explains 100 %, rig-089 86 %; a device's own mode drawn the other way: 25-44 %)
             explained = max(v["explained"] for v in ch.values())
-            # ... or when the moved mode rings where it was moved to: a second mode of the device
-            rings = _mode_band_share(fitter, p_after, f1, q=p_before) if f1 < 0.45 / dt else 0.0
+            low = explained < MODE_SWAP_EXPLAINED and f1 < 0.45 / dt    # ... or the moved mode rings there
+            rings = _mode_band_share(fitter, p_after, f1, q=p_before) if low else 0.0
             if explained < MODE_SWAP_EXPLAINED and rings < MODE_MOVED_RINGS:
+                where = f"only {100 * rings:.0f} % of what it changes is near it" if low else "past Nyquist"
                 return False, (f"it takes the place of the recalibrated first mode ({f0:.4g} Hz) and moves "
                                f"that to {f1:.4g} Hz, but explains only {100 * explained:.0f} % of the "
-                               f"structured residual, and only {100 * rings:.0f} % of what it changes lies "
-                               f"near {f1:.4g} Hz: the device's own mode drawn another way, not a "
-                               "further one")
+                               f"structured residual, and {where}: the device's own mode drawn another way, "
+                               "not a further one")
             # two modes only when both ring: a moved "mode" damped beyond MODE_LIGHT may only add lag
             # (rig-004: 710 Hz at zeta 0.35 for a delay fitted a sample short), but a device's own
             # mode is damped up to 0.3 (rig-d8-115: 259 Hz at 0.23 beside a 161 Hz further mode)
