@@ -115,3 +115,54 @@ def test_a_parameter_no_sample_responds_to_has_no_figure_and_leaves_the_others_t
     J[:, 1] = 1e-6 * rng.normal(size=200)           # weak, but a response
     assert sensitive(J, r0) == [True, True, True]
     assert sensitive(np.zeros((5, 2)), r0[:5]) == [False, False]
+
+
+def test_the_lag_is_searched_again_once_the_first_mode_has_moved(rig_diagnosis, monkeypatch):
+    # rig-d26-094 (fresh draw 26, clean: 4.53 kHz, force pick-off, a 0.27 + 0.10 ms amplifier, a
+    # 746 Hz first mode at zeta 0.011). Fitted with the nominal mechanics the lag came out 1.65 ms;
+    # the mode recalibrated beside it settled at zeta 0.14, and from there a current limit "binding
+    # on 8 samples" took the misfit: named on a clean device (stop 79 and 80 code). With the lag
+    # searched again over its range once the mode moved and the ordinary parameters refitted from
+    # there, the cost falls to 0.08 of what it was: 0.39 ms, the mode lightly damped, nothing named
+    from piezo_fmu.diagnose import recalibrate
+
+    res = rig_diagnosis("rig-d26-094")
+    assert res["final"]["effects"] == [], res["findings"]
+    rc = res["baseline"]["recalibrated"]
+    assert rc["amplifier_tau_s"]["value"] < 0.6e-3
+    assert rc["first_mode_zeta"]["value"] < 0.1
+    # kept only for a large gain: with the bar at a ratio no fit reaches, the false current limit
+    # of before
+    monkeypatch.setattr(recalibrate, "LAG_AGAIN_RATIO", 0.0)
+    res = rig_diagnosis("rig-d26-094")
+    assert "amplifier_current_limit" in res["final"]["effects"]
+
+
+def test_a_mode_at_its_damping_bound_is_fitted_with_a_second_lag_stage(monkeypatch):
+    # rig-d26-040 (fresh draw 26, clean: 14.9 kHz, force pick-off, a 2.91 + 0.91 ms amplifier, a
+    # 485 Hz first mode at zeta 0.28). A second lag stage beside the nominal mechanics did not pay;
+    # the mode beside one stage settled at zeta 0.9, the end of its range: neither was taken, and
+    # 17 x the noise rms was left in x, 52 x in us ("a structured residual remains", stop 80 code).
+    # Fitted together they take 99 % of the cost: order 2 and the mode, in the contact force
+    from piezo_fmu import rig
+    from piezo_fmu.diagnose import recalibrate
+    from piezo_fmu.diagnose.run import analyse
+
+    rec = rig.generate(next(s for s in rig.cases(draw=26) if s.case_id == "rig-d26-040"))
+    truth = rec.truth["params"]
+    raw = [{"name": "rig-d26-040", "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
+    res = analyse(raw, max_rounds=0).result
+    rc, noise = res["baseline"]["recalibrated"], res["baseline"]["noise"]
+    assert rc["amplifier_order"] == 2 and rc["first_mode_hz"]["identified"]
+    assert rc["sensor_follows"]["value"] == "contact"
+    f1 = truth["mechanics.f1"]["value"]
+    assert abs(math.log(rc["first_mode_hz"]["value"] / f1)) < math.log(1.25)
+    lag = truth["amplifier.tau_output"]["value"] + truth["amplifier.tau_internal"]["value"]
+    assert rc["amplifier_total_lag_s"]["value"] == pytest.approx(lag, rel=0.15)
+    assert res["final"]["rmse"]["x"] < 1.5 * noise["x"]
+    # each alone, as before: neither is taken and the residual stays many times the noise
+    monkeypatch.setattr(recalibrate, "_mode_with_order", lambda fitter, p, struct, free, tried: tried[0])
+    res = analyse(raw, max_rounds=0).result
+    rc = res["baseline"]["recalibrated"]
+    assert rc["amplifier_order"] == 1 and not rc["first_mode_hz"].get("identified")
+    assert res["final"]["rmse"]["x"] > 5 * res["baseline"]["noise"]["x"]

@@ -23,7 +23,7 @@ from .engine import amplifier_output, at_samples, chain, lowpass, predict, trend
 from .delays import delay_search
 from .drifts import drift_start
 from .fit import Fitter, Structure
-from .residuals import SLOW_HELDOUT_MIN, taken_in_holds
+from .residuals import MODE_BAND_WIDTH, SLOW_HELDOUT_MIN, band_share, taken_in_holds
 from .starts import further_mode_start, log_grid, swap_lag_account, with_params
 from .stats import near_range_end
 
@@ -173,8 +173,11 @@ def propose(name, fitter: Fitter, p, struct: Structure, ctx):
 CREEP_SLOWEST_S = 0.05
 # a further mode rings at its own frequency: at least this share of what it changes lies within
 # f_n / 1.25 .. 1.25 f_n (rig survey, 2026-11-25: true modes 0.38-0.99, the further "modes" named
-# on rig-004, rig-040 and the clean rig-125, each reshaping the first mode's response, 0.001-0.010)
-MODE_OWN_BAND = 0.1
+# on rig-004, rig-040 and the clean rig-125, each reshaping the first mode's response, 0.001-0.010),
+# or MODE_OWN_BELOW[1] within f_n / MODE_OWN_BELOW[0] .. 1.25 f_n: below f_n a mode amplifies the drive
+# by 1 / (1 - (f / f_n)^2) (rig-d26-069: 79 Hz, zeta 0.005, 224 noise rms, sines of 20 and 50 Hz:
+# 0.06 near it, 0.99 from f_n / 2; the refused ones of draws 0, 23, 26 at most 0.14 from f_n / 2)
+MODE_OWN_BAND, MODE_OWN_BELOW = 0.1, (2.0, 0.5)
 # a current limit binds on at least 3 samples, or on 1-2 when it explains at least this share of
 # the structured residual on every channel and the held-out data take its correction within
 # LIMIT_BRIEF_BETA at z >= 3: a slowly sampled record sees a limit only at its largest steps
@@ -184,7 +187,6 @@ MODE_OWN_BAND = 0.1
 # (rig-131)
 LIMIT_BRIEF_EXPLAINED = 0.9
 LIMIT_BRIEF_BETA = (0.8, 1.25)
-MODE_BAND_WIDTH = 1.25   # that band: f_n / width .. f_n * width
 MODE_SWAP_EXPLAINED = 0.8   # the share of the structured residual such a further mode must explain
 # ... unless this share of what the swap changes lies near the moved mode (f1 / 1.25 .. 1.25 f1, below
 # Nyquist): it rings there, a second mode (swaps refused in rig draws 0, 23-25, 2026-12-05: true second
@@ -422,26 +424,6 @@ def _own_channel_share(fitter: Fitter, p0, p1, ch):
     return (mse[0] - mse[1]) / structured, removed
 
 
-def _mode_band_share(fitter: Fitter, p, f, q=None, width=MODE_BAND_WIDTH):
-    """Share of what the further mode of ``p`` itself changes (``p`` against ``q``, by default ``p``
-    without it, every other value kept) that lies within ``f / width .. f * width`` [Hz], over every
-    recorded channel (energies of the change's spectrum, its mean removed). A lightly damped mode
-    rings at its own frequency; a "mode" changing the response mostly elsewhere reshapes another part."""
-    if q is None:
-        q = p.copy()
-        q.res = None
-    near = total = 0.0
-    for r in fitter.recs:
-        a, b = predict(r, fitter.dev, p, direct=True), predict(r, fitter.dev, q, direct=True)
-        for c in r.channels():
-            d = a[c] - b[c]
-            spec = np.abs(np.fft.rfft((d - np.mean(d)) * np.hanning(d.size))) ** 2
-            fr = np.fft.rfftfreq(d.size, r.dt)
-            near += float(np.sum(spec[(fr >= f / width) & (fr <= f * width)]))
-            total += float(np.sum(spec[1:]))
-    return near / total if total > 0 else 0.0
-
-
 def _drift_in_sensor(fitter: Fitter, p):
     """How much of the fitted displacement drift also shows in the sensor residual, relative to a
     trend of the force itself (1: all of it, 0: none); ``None`` without a sensor channel."""
@@ -520,8 +502,9 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
             return False, f"damping ratio {z:.2f}: not a lightly damped mode (it only adds phase lag)"
         if f > 0.45 / dt:
             return False, "above the Nyquist frequency"
-        share = _mode_band_share(fitter, p_after, f)
-        if share < MODE_OWN_BAND:
+        share = band_share(fitter, p_after, f)
+        low = band_share(fitter, p_after, f, below=MODE_OWN_BELOW[0]) if share < MODE_OWN_BAND else 1.0
+        if low < MODE_OWN_BELOW[1]:
             return False, (f"only {100 * share:.1f} % of what it changes lies within "
                            f"{f / MODE_BAND_WIDTH:.4g}-{f * MODE_BAND_WIDTH:.4g} Hz: it does not ring at its "
                            "own frequency, it reshapes the response elsewhere (near the first mode, or "
@@ -538,7 +521,7 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
             # found at 487 Hz, explains 100 %, rig-089 86 %; a device's own mode drawn the other way: 25-44 %)
             explained = max(v["explained"] for v in ch.values())
             low = explained < MODE_SWAP_EXPLAINED and f1 < 0.45 / dt    # ... or the moved mode rings there
-            rings = _mode_band_share(fitter, p_after, f1, q=p_before) if low else 0.0
+            rings = band_share(fitter, p_after, f1, q=p_before) if low else 0.0
             if explained < MODE_SWAP_EXPLAINED and rings < MODE_MOVED_RINGS:
                 where = f"only {100 * rings:.0f} % of what it changes is near it" if low else "past Nyquist"
                 return False, (f"it takes the place of the recalibrated first mode ({f0:.4g} Hz) and moves "

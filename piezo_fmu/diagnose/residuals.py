@@ -1,5 +1,5 @@
 """The residuals of a parameter set (training and held-out rows per channel, the peaks of their
-spectra) and the acceptance thresholds every decision of the diagnosis uses (see docs/diagnose.md,
+spectra, the share of a change that lies in a frequency band) and the acceptance thresholds every decision of the diagnosis uses (see docs/diagnose.md,
 "How a finding is decided").
 
 Kept apart from :mod:`.select` and :mod:`.recalibrate`, which both need them, so that neither
@@ -15,9 +15,10 @@ from .engine import predict
 from .fit import Fitter
 from .stats import psd
 
-__all__ = ["ACCEPT", "SLOW_HELDOUT_MIN", "full_residuals", "heldout_rmse", "hold_runs", "residual_peaks",
-           "residual_sets", "spectral_peaks", "taken_in_holds"]
+__all__ = ["ACCEPT", "MODE_BAND_WIDTH", "SLOW_HELDOUT_MIN", "band_share", "full_residuals", "heldout_rmse",
+           "hold_runs", "residual_peaks", "residual_sets", "spectral_peaks", "taken_in_holds"]
 
+MODE_BAND_WIDTH = 1.25   # a mode's own band: f_n / width .. f_n * width
 ACCEPT = {
     "p_lr": 1e-3,            # likelihood-ratio test on training rows (effective sample size)
     "dbic": 10.0,            # BIC difference (effective sample size), > 10 = very strong
@@ -170,3 +171,24 @@ def taken_in_holds(fitter: Fitter, p_before, p_after, ch, own=None):
     if free <= 1e-6 * g[0, 0]:
         return None
     return float(np.linalg.solve(g, v)[0]), math.sqrt(free) / noise
+
+
+def band_share(fitter: Fitter, p, f, q=None, width=MODE_BAND_WIDTH, below=None):
+    """Share of what the further mode of ``p`` itself changes (``p`` against ``q``, by default ``p``
+    without it, every other value kept) that lies within ``f / below .. f * width`` [Hz] (``below``
+    defaults to ``width``), over every recorded channel (energies of the change's spectrum, its mean
+    removed). A lightly damped mode rings at its own frequency; a "mode" changing the response mostly
+    elsewhere reshapes another part."""
+    if q is None:
+        q = p.copy()
+        q.res = None
+    near = total = 0.0
+    for r in fitter.recs:
+        a, b = predict(r, fitter.dev, p, direct=True), predict(r, fitter.dev, q, direct=True)
+        for c in r.channels():
+            d = a[c] - b[c]
+            spec = np.abs(np.fft.rfft((d - np.mean(d)) * np.hanning(d.size))) ** 2
+            fr = np.fft.rfftfreq(d.size, r.dt)
+            near += float(np.sum(spec[(fr >= f / (below or width)) & (fr <= f * width)]))
+            total += float(np.sum(spec[1:]))
+    return near / total if total > 0 else 0.0
