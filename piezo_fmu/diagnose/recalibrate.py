@@ -44,7 +44,8 @@ __all__ = ["PICKOFFS", "Recalibration", "adopt_mode", "mode_at", "mode_picks", "
 PICKOFFS = ("stack", "contact", "load")
 MODE_RANGE = (100.0, 20000.0)        # [Hz] the first mode's search range
 MAX_LAG = 2                          # [samples]
-LAG_AGAIN_RATIO = 0.5                # a lag searched again once the mode moved: kept below this cost ratio
+# a lag searched again once the mode moved: refitted when it moved by this factor, kept below this cost ratio
+LAG_AGAIN_MOVED, LAG_AGAIN_RATIO = 2.0, 0.5
 
 
 @dataclass
@@ -460,13 +461,18 @@ def _threshold_scale_fit(fitter, rc, struct, sat, start):
 def _lag_again(fitter, rc, struct):
     """The amplifier lag searched again over its whole range once the first mode has moved: fitted
     with the nominal mechanics (step 1) it may stand in for them, and the fits after start from
-    there. The ordinary parameters are refitted from the lag found, and the result kept only when
-    its cost is below ``LAG_AGAIN_RATIO`` of what it was: a lag that had stood in for the mechanics
-    is far off (rig-d26-094, clean: 1.65 ms beside a 741 Hz mode at zeta 0.14; searched again and
-    refitted 0.39 ms beside 744 Hz at zeta 0.013, 0.08 of the cost; the device 0.27 + 0.10 ms,
-    746 Hz, zeta 0.011), while a lag moved for a few per cent trades against what the search names
-    next (a one-sample delay of rig-d24-000: 0.92 of the cost; a fixture's mode of rig-177: 0.85)."""
+    there. When the lag found is ``LAG_AGAIN_MOVED`` times off, the ordinary parameters are refitted
+    from it, and the result kept only when its cost is below ``LAG_AGAIN_RATIO`` of what it was: a
+    lag that had stood in for the mechanics is far off (rig-d26-094, clean: 1.65 ms beside a 741 Hz
+    mode at zeta 0.14; searched again 0.29 ms, refitted 0.39 ms beside 744 Hz at zeta 0.013, 0.08 of
+    the cost; the device 0.27 + 0.10 ms, 746 Hz, zeta 0.011), while a lag moved for a few per cent
+    trades against what the search names next (a one-sample delay of rig-d24-000: 0.40 to 0.36 ms;
+    rig-d28-042, a delay beside a further mode: 0.55 to 0.50 ms, and the refit took the further mode
+    for the first one) and a fixture's mode of rig-177 keeps 0.85 of the cost. Returns the ratio, or
+    ``None`` when the lag did not move."""
     q, _ = fitter.fit_scalar(rc.params, struct, "tau")
+    if abs(math.log(q.tau / rc.params.tau)) < math.log(LAG_AGAIN_MOVED):
+        return None
     fr = _fit(fitter, q, struct, fitter.ordinary, 20)
     ratio = fr.cost / max(fitter.cost(rc.params), 1e-300)
     if ratio < LAG_AGAIN_RATIO:
