@@ -1339,7 +1339,7 @@ def test_a_further_mode_that_amplifies_the_drive_below_it_rings_at_its_own_frequ
     assert found["parameters"]["f_n_Hz"] == pytest.approx(truth["extra_resonance.f"]["value"], rel=0.02)
     assert res["final"]["rmse"]["x"] < 0.1 * res["baseline"]["rmse"]["x"]
     # with the band around the mode alone (the rule before) it is refused
-    monkeypatch.setattr(catalogue, "MODE_OWN_BELOW", (2.0, math.inf))
+    monkeypatch.setattr(catalogue, "MODE_OWN_BELOW", (2.0, math.inf, 0.05))
     res = analyse(raw).result
     assert "extra_resonance" not in res["final"]["effects"]
     assert any("does not ring at its own frequency" in r["why"] for r in res["rejected"])

@@ -174,10 +174,11 @@ CREEP_SLOWEST_S = 0.05
 # a further mode rings at its own frequency: at least this share of what it changes lies within
 # f_n / 1.25 .. 1.25 f_n (rig survey, 2026-11-25: true modes 0.38-0.99, the further "modes" named
 # on rig-004, rig-040 and the clean rig-125, each reshaping the first mode's response, 0.001-0.010),
-# or MODE_OWN_BELOW[1] within f_n / MODE_OWN_BELOW[0] .. 1.25 f_n: below f_n a mode amplifies the drive
-# by 1 / (1 - (f / f_n)^2) (rig-d26-069: 79 Hz, zeta 0.005, 224 noise rms, sines of 20 and 50 Hz:
-# 0.06 near it, 0.99 from f_n / 2; the refused ones of draws 0, 23, 26 at most 0.14 from f_n / 2)
-MODE_OWN_BAND, MODE_OWN_BELOW = 0.1, (2.0, 0.5)
+# or, damped at most MODE_OWN_BELOW[2], MODE_OWN_BELOW[1] within f_n / MODE_OWN_BELOW[0] .. 1.25 f_n:
+# below f_n such a mode amplifies the drive by 1 / (1 - (f / f_n)^2) (rig-d26-069: 79 Hz, zeta 0.005,
+# 224 noise rms, sines of 20 and 50 Hz: 0.06 near it, 0.99 from f_n / 2; the refused ones of draws 0,
+# 23, 26 at most 0.14 there, but rig-040's 164 Hz at zeta 0.12, a delay's stand-in, more: its phase lag)
+MODE_OWN_BAND, MODE_OWN_BELOW = 0.1, (2.0, 0.5, 0.05)
 # a current limit binds on at least 3 samples, or on 1-2 when it explains at least this share of
 # the structured residual on every channel and the held-out data take its correction within
 # LIMIT_BRIEF_BETA at z >= 3: a slowly sampled record sees a limit only at its largest steps
@@ -503,7 +504,8 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
         if f > 0.45 / dt:
             return False, "above the Nyquist frequency"
         share = band_share(fitter, p_after, f)
-        low = band_share(fitter, p_after, f, below=MODE_OWN_BELOW[0]) if share < MODE_OWN_BAND else 1.0
+        low = (1.0 if share >= MODE_OWN_BAND else 0.0 if z > MODE_OWN_BELOW[2]
+               else band_share(fitter, p_after, f, below=MODE_OWN_BELOW[0]))
         if low < MODE_OWN_BELOW[1]:
             return False, (f"only {100 * share:.1f} % of what it changes lies within "
                            f"{f / MODE_BAND_WIDTH:.4g}-{f * MODE_BAND_WIDTH:.4g} Hz: it does not ring at its "
