@@ -504,9 +504,9 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
         if f > 0.45 / dt:
             return False, "above the Nyquist frequency"
         share = band_share(fitter, p_after, f)
-        low = (1.0 if share >= MODE_OWN_BAND else 0.0 if z > MODE_OWN_BELOW[2]
-               else band_share(fitter, p_after, f, below=MODE_OWN_BELOW[0]))
-        if low < MODE_OWN_BELOW[1]:
+        below = (1.0 if share >= MODE_OWN_BAND else 0.0 if z > MODE_OWN_BELOW[2]
+                 else band_share(fitter, p_after, f, below=MODE_OWN_BELOW[0]))
+        if below < MODE_OWN_BELOW[1]:
             return False, (f"only {100 * share:.1f} % of what it changes lies within "
                            f"{f / MODE_BAND_WIDTH:.4g}-{f * MODE_BAND_WIDTH:.4g} Hz: it does not ring at its "
                            "own frequency, it reshapes the response elsewhere (near the first mode, or "
