@@ -281,19 +281,14 @@ def _mode(fitter, rc, struct, sat):
             break
     best = min(tried, key=lambda fr: fr.cost)
     gain, _ = _gain(fitter, p, best.params, 2 + (best.params.pick != p.pick))
-    f_fit, z_fit = best.params.mode(fitter.dev)
-    edge = (near_range_end(f_fit, *fitter.bounds("mech_f"))
-            or near_range_end(z_fit, *fitter.bounds("mech_zeta", best.params)))
-    z_hi = fitter.bounds("mech_zeta", best.params)[1]
-    if edge and p.tau2 == 0.0 and "tau2" not in fitter.ordinary and z_fit > 0.9 * z_hi:
+    edge = _mode_at_range_end(fitter, best.params)
+    if (edge and p.tau2 == 0.0 and "tau2" not in fitter.ordinary
+            and best.params.mode(fitter.dev)[1] > 0.9 * fitter.bounds("mech_zeta", best.params)[1]):
         # a mode at its damping bound stands in for a second lag stage: both together
         two = _mode_with_order(fitter, p, struct, free, tried)
         gain2, _ = _gain(fitter, p, two.params, 3 + (two.params.pick != p.pick))
-        f2, z2 = two.params.mode(fitter.dev)
-        if gain2 > ACCEPT["dbic"] and not (
-                near_range_end(f2, *fitter.bounds("mech_f"))
-                or near_range_end(z2, *fitter.bounds("mech_zeta", two.params))
-                or near_range_end(two.params.tau2, *fitter.bounds("tau2"))):
+        if gain2 > ACCEPT["dbic"] and not (_mode_at_range_end(fitter, two.params)
+                                          or near_range_end(two.params.tau2, *fitter.bounds("tau2"))):
             fitter.ordinary = fitter.ordinary + ["tau2"]
             rc.report["amplifier_order"] = {"value": 2, "bic_gain": round(gain2, 1),
                                             "with": "the first mode (each alone settles at a bound)"}
@@ -308,6 +303,12 @@ def _mode(fitter, rc, struct, sat):
         return True
     why = ("at the end of its search range" if edge else f"not visible in this recording (BIC gain {gain:.1f})")
     return _mode_not_identified(rc, p, why, f_nom, z_nom)
+
+
+def _mode_at_range_end(fitter, q):
+    """Whether the first mode of ``q`` (frequency or damping) ended at its search range's end."""
+    f, z = q.mode(fitter.dev)
+    return near_range_end(f, *fitter.bounds("mech_f")) or near_range_end(z, *fitter.bounds("mech_zeta", q))
 
 
 def _mode_with_order(fitter, p, struct, free, tried):
@@ -352,9 +353,7 @@ def mode_at(fitter: Fitter, p, struct: Structure, f, zeta, without_items=()):
         fr = fitter.fit(q, struct, free=free, max_nfev=10, held=True)
         if best is None or fr.cost < best.cost:
             best = fr
-    f_fit, z_fit = best.params.mode(fitter.dev)
-    if (near_range_end(f_fit, *fitter.bounds("mech_f"))
-            or near_range_end(z_fit, *fitter.bounds("mech_zeta", best.params))):
+    if _mode_at_range_end(fitter, best.params):
         return None
     return best
 
@@ -468,16 +467,13 @@ def _lag_again(fitter, rc, struct):
     the cost; the device 0.27 + 0.10 ms, 746 Hz, zeta 0.011), while a lag moved for a few per cent
     trades against what the search names next (a one-sample delay of rig-d24-000: 0.40 to 0.36 ms;
     rig-d28-042, a delay beside a further mode: 0.55 to 0.50 ms, and the refit took the further mode
-    for the first one) and a fixture's mode of rig-177 keeps 0.85 of the cost. Returns the ratio, or
-    ``None`` when the lag did not move."""
+    for the first one) and a fixture's mode of rig-177 keeps 0.85 of the cost."""
     q, _ = fitter.fit_scalar(rc.params, struct, "tau")
     if abs(math.log(q.tau / rc.params.tau)) < math.log(LAG_AGAIN_MOVED):
-        return None
+        return
     fr = _fit(fitter, q, struct, fitter.ordinary, 20)
-    ratio = fr.cost / max(fitter.cost(rc.params), 1e-300)
-    if ratio < LAG_AGAIN_RATIO:
+    if fr.cost < LAG_AGAIN_RATIO * fitter.cost(rc.params):
         rc.params = fr.params
-    return ratio
 
 
 def _order(fitter, rc, struct, sat):

@@ -1,6 +1,6 @@
 """The residuals of a parameter set (training and held-out rows per channel, the peaks of their
-spectra, the share of a change that lies in a frequency band) and the acceptance thresholds every decision of the diagnosis uses (see docs/diagnose.md,
-"How a finding is decided").
+spectra, the share of a change that lies in a frequency band) and the acceptance thresholds every
+decision of the diagnosis uses (see docs/diagnose.md, "How a finding is decided").
 
 Kept apart from :mod:`.select` and :mod:`.recalibrate`, which both need them, so that neither
 imports the other at module level.
