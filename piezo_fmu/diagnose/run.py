@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import UserError
 from ..model import Model, load_model
 from . import locate, workers
-from .between import between_samples, delay_between
+from .between import between_samples, delay_between, limit_between
 from .budget import TIME_BUDGET_S, WORK_PER_S
 from .blas import single_thread
 from .engine import Device, Params, device_from_model, params_from_model, predict
@@ -248,10 +248,21 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
     # what a delay takes up there; rig-045, a current limit at 2.5 kHz, gained a false one at 0.58)
     if not FAST & set(struct_final.effects) and not fitter.out_of_time():
         late = delay_between(fitter, p_final, struct_final, noise, cctx, p_base.thresholds, step)
-        if late is not None and _late_delay(late, recal, findings, candidates, rejected, step):
+        filed = late is not None and _late_finding(late, "time_delay", recal, findings, candidates, rejected, step)
+        # the finer replay's work counts against the budget
+        done = late["fitter"].work if late is not None and "fitter" in late else 0.0
+        fitter.work += done
+        if not filed and not fitter.out_of_time():
+            # nor a current limit: the same replay, the same base
+            late = limit_between(late, p_final, struct_final, noise, cctx, step)
+            filed = late is not None and _late_finding(late, "amplifier_current_limit", recal, findings,
+                                                       candidates, rejected, step)
+        if filed:
             # from here on the recordings are replayed between their samples (the model, its
             # report and its re-run with them)
-            fitter, recs = late["fitter"], late["fitter"].recs
+            fine = late["fitter"]
+            fine.work = fitter.work + fine.work - done     # the diagnosis's work, each part counted once
+            fitter, recs = fine, fine.recs
             struct_final = late["struct"]
             p_final = fitter.fit(late["fit"].params, struct_final, max_nfev=15).params
             p_from, revisited[0] = late["base"], True
@@ -307,33 +318,37 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
                      {"fitter": fitter, "recal": recal, "noise": noise, "cctx": cctx})
 
 
-def _late_delay(late, recal, findings, candidates, rejected, step):
-    """File the delay :func:`.between.delay_between` tested: a finding (True: the diagnosis goes on
-    with its replay), a candidate or a refusal."""
+def _late_finding(late, name, recal, findings, candidates, rejected, step):
+    """File the mechanism ``name`` (a delay from :func:`.between.delay_between`, a current limit from
+    :func:`.between.limit_between`) tested with the recordings replayed between their samples: a
+    finding (True: the diagnosis goes on with that replay), a candidate or a refusal."""
     if not late["passed"]:
-        step(f"time_delay between the samples: fails ({late['why']})")
-        rejected.append({"effect": "time_delay", "why": f"replayed between the samples: {late['why']}",
+        step(f"{name} between the samples: fails ({late['why']})")
+        rejected.append({"effect": name, "why": f"replayed between the samples: {late['why']}",
                          **({"at_bound": late["bounds"]} if late["bounds"] else {})})
         return False
     fr, cmp = late["fit"], late["cmp"]
-    nd = round(fr.params.delay / late["fitter"].dt)
     f, z = fr.params.mode(late["fitter"].dev)
-    entry = {"name": "time_delay", "cmp": cmp, "before": late["base"], "after": fr.params,
-             "note": (f"{nd} sample(s), found with the recording replayed between its samples (first mode "
+    if name == "time_delay":
+        what = f"{round(fr.params.delay / late['fitter'].dt)} sample(s)"
+    else:
+        what = f"slew rate {fr.params.slew:.4g} V/s"
+    entry = {"name": name, "cmp": cmp, "before": late["base"], "after": fr.params,
+             "note": (f"{what}, found with the recording replayed between its samples (first mode "
                       f"{f:.4g} Hz, zeta {z:.3g} beside it)" + (f"; {late['note']}" if late["note"] else "")),
              "alt_share": 0.0 if late["rival"] is None else 1.0, "alternatives": [], "rival": late["rival"],
              "rmse_after": late["rmse_after"], "confidence": late["confidence"]}
-    step(f"time_delay between the samples: passes, {nd} sample(s), confidence {late['confidence']:.2f}"
+    step(f"{name} between the samples: passes, {what}, confidence {late['confidence']:.2f}"
          + (f" ({late['note']})" if late["note"] else ""))
     if late["confidence"] < CONFIDENT:
-        if not any(c["name"] == "time_delay" for c in candidates):     # (the search's, at one step, stays)
+        if not any(c["name"] == name for c in candidates):     # (the search's, at one step, stays)
             candidates.append(entry)
         return False
-    candidates[:] = [c for c in candidates if c["name"] != "time_delay"]
+    candidates[:] = [c for c in candidates if c["name"] != name]
     findings.append(entry)
     if late["mode_added"]:
-        adopt_mode(late["fitter"], recal, fr.params, "found beside the delay, with the recording replayed "
-                                                     "between its samples")
+        adopt_mode(late["fitter"], recal, fr.params, f"found beside the {name.replace('_', ' ')}, with the "
+                                                     "recording replayed between its samples")
     return True
 
 
