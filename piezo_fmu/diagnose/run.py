@@ -257,11 +257,12 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
             late = limit_between(late, p_final, struct_final, noise, cctx, step)
             filed = late is not None and _late_finding(late, "amplifier_current_limit", recal, findings,
                                                        candidates, rejected, step)
+            fitter.work += late["fitter"].work - done if late is not None else 0.0     # (the limit's)
         if filed:
             # from here on the recordings are replayed between their samples (the model, its
             # report and its re-run with them)
             fine = late["fitter"]
-            fine.work = fitter.work + fine.work - done     # the diagnosis's work, each part counted once
+            fine.work = fitter.work          # the diagnosis's work, each part counted once
             fitter, recs = fine, fine.recs
             struct_final = late["struct"]
             p_final = fitter.fit(late["fit"].params, struct_final, max_nfev=15).params
