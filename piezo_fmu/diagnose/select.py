@@ -40,9 +40,8 @@ from .loopshape import (LOOP_HELDOUT_BETA, LOOP_HELDOUT_Z, REFIT_WORSE, SHAPE_BE
                         classical_named, further_from_nominal, loop_beside, shape_from_nominal, unnamed_loop)
 from .recalibrate import ITEM_K, ITEM_PARAMS, drop, present, without
 from .residuals import ACCEPT, full_residuals, heldout_rmse, residual_peaks, residual_sets
-from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, creep_before_drift, delay_or_lag, drift_both,
-                     drift_or_creep, ordinary_found, physics_before_shape, resonance_or_mode,
-                     sampling_lag_rival)
+from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, confidences, creep_before_drift, delay_or_lag,
+                     drift_both, drift_or_creep, ordinary_found, physics_before_shape, resonance_or_mode)
 from .starts import swapped_mode
 from .stats import compare
 
@@ -313,6 +312,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     (an ordinary item the finding's residual had hidden) or ``None``."""
     current, struct = p_base, struct_nom
     findings, rejected = [], []
+    absorbed = {}       # effect -> the round in which it was taken into the recalibration (a mode, a lag stage)
     adopted = 0
     sets_cur, _ = residual_sets(fitter, current)
     budget_note, owed = None, []        # owed: physical candidates that passed in a round a finer loop won
@@ -419,6 +419,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 + ", taken into the recalibration"})
             current = fitter.fit(as_mode if as_mode is not None else as_lag, struct, max_nfev=10).params
             recal.params = current
+            absorbed.setdefault(best["name"], rnd)
             noise.update(noise_levels(fitter, current)[0])
             sets_cur, _ = residual_sets(fitter, current)
             continue
@@ -491,7 +492,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         else:
             findings.append({"name": best["name"], "cmp": best["cmp"], "before": current,
                              "after": best["fit"].params, "note": best["note"],
-                             "alt_share": alt,
+                             "alt_share": alt, "round": rnd,
                              "alternatives": [t["name"] for t in tried if t is not best],
                              "rival": None if rival is None else {
                                  "effect": rival["name"], "passed": rival["passed"],
@@ -558,31 +559,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     # (a check too: the loop the search ended with, against the nominal operators' classical loops)
     struct, findings, measured = classical_named(fitter, current, struct, findings, rejected, p_base.thresholds,
                                                  noise, recal, step)
-    accepted = {f["name"] for f in findings}
-    for f in findings:
-        # a rival that is itself accepted explained another part of the residual (two mechanisms),
-        # not the same part another way: it does not make this finding less unique
-        rival = (f.get("rival") or {}).get("effect")
-        alt = 0.0 if rival in accepted else f["alt_share"]
-        if f["name"] == "time_delay" and sampling_lag_rival(fitter, f["after"]):
-            # with one channel a delay of a whole sample or two is that channel's sampling lag as
-            # well (the same model: an ordinary item, recalibrated on two channels): a coin toss
-            # between the two, never confident
-            alt = 1.0
-            f["rival"] = {"effect": "sampling_lag", "passed": True, "explained_share": {
-                c: round(v["explained"], 4) for c, v in f["cmp"]["channels"].items()},
-                "why": "one recorded channel: a lag of whole samples of that channel gives the same model"}
-        f["confidence"] = confidence(f["cmp"], f["name"], alt)
-        bw = f.get("backward")
-        if bw is not None and bw["dbic"] >= f["cmp"]["dbic"]:
-            # a finding made before a larger one was measured against a residual that larger one
-            # still filled (rig-141: a delay explained 26 % beside a loop shape named after it; with
-            # the shape in, the delay explains 73 % at a BIC gain of 447 against 55). When the
-            # backward check's evidence is at least the forward one's, the others did not take what
-            # it explains: its confidence is the better of the two. (When the evidence falls with
-            # the others in, they explain part of the same residual: the forward measure stands;
-            # rig-179's false drift beside a creep: BIC 4393 forward, 107 backward.)
-            f["confidence"] = max(f["confidence"], confidence(bw, f["name"], alt))
+    confidences(fitter, findings, absorbed, max_rounds)
 
     # -- weak findings become candidates: the model keeps only the confident ones -----------------------
     weak = [f for f in findings if f["confidence"] < CONFIDENT]
