@@ -145,7 +145,7 @@ def _where(f, recs, ctxs, dev, noise):
                 np.convolve(gain, np.ones(max(3, int(0.02 / r.dt))) / max(3, int(0.02 / r.dt)), "same"))))
             for w in locate.windows(gain, ctx, level, min_len_s=max(0.02, 0.002 * r.t[-1]), max_windows=4):
                 sl = slice(w["k0"], w["k1"] + 1)
-                unit = "V" if c == "us" else "x units"
+                unit = UNITS[c]
                 where.append({"t0_s": round(r.t0 + w["t0"], 6), "t1_s": round(r.t0 + w["t1"], 6),
                               "channel": c, "energy": w["energy"],
                               "why": f"{locate.describe_window(ctx, w['k0'], w['k1'])}; {c} residual rms "
