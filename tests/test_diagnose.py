@@ -679,8 +679,8 @@ def test_every_window_is_described_by_where_it_lies(rest_step_run):
         t0, t1, why = w["t0_s"], w["t1_s"], w["why"]
         assert t1 >= t0
         # the residual in the window carries its channel's unit (until stop 83 x had "x units")
-        assert "residual rms" not in why or re.search(r"(x residual rms \S+ -> \S+ um|us residual rms \S+ -> \S+ V)$",
-                                                      why), why
+        unit = r"(x residual rms \S+ -> \S+ um|us residual rms \S+ -> \S+ V)$"
+        assert "residual rms" not in why or re.search(unit, why), why
         for m in re.finditer(r"(hold after the step|before the step|step) of ([-+0-9.e]+) V at ([0-9.e+-]+) s", why):
             kind, at = m.group(1), float(m.group(3))
             assert any(abs(at - s) < 2e-3 for s in rest_step_run["steps"]), why

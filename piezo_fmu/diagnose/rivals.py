@@ -25,9 +25,10 @@ from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, adopt_mode, drop, mode_at
 from .residuals import ACCEPT, heldout_rmse, residual_sets
 from .stats import compare
 
-__all__ = ["ABSORBED_KEPT", "CREEP_BEFORE_DRIFT", "MODE_EVIDENCE", "ORDINARY_ADOPTIONS", "SHAPE_LAST", "beside_named_mode",
-           "confidences", "creep_before_drift", "delay_or_lag", "drift_both", "drift_or_creep", "ordinary_found",
-           "physics_before_shape", "resonance_or_mode", "sampling_lag_rival"]
+__all__ = ["ABSORBED_KEPT", "CREEP_BEFORE_DRIFT", "MODE_EVIDENCE", "ORDINARY_ADOPTIONS", "SHAPE_LAST",
+           "beside_named_mode", "confidences", "creep_before_drift", "delay_or_lag", "drift_both",
+           "drift_or_creep", "ordinary_found", "physics_before_shape", "resonance_or_mode",
+           "sampling_lag_rival"]
 
 SHAPE_LAST = 0.8           # a physical mechanism explaining this share of what a finer loop does goes first
 

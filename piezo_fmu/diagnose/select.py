@@ -312,7 +312,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     (an ordinary item the finding's residual had hidden) or ``None``."""
     current, struct = p_base, struct_nom
     findings, rejected = [], []
-    absorbed = {}       # effect -> the round in which it was taken into the recalibration (a mode, a lag stage)
+    absorbed = {}       # effect -> first round it went into the recalibration (a mode, a lag stage)
     adopted = 0
     sets_cur, _ = residual_sets(fitter, current)
     budget_note, owed = None, []        # owed: physical candidates that passed in a round a finer loop won
