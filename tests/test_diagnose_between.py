@@ -90,3 +90,21 @@ def test_a_current_limit_ramping_the_jumps_over_a_sample_is_named_between_the_sa
     res = rig_diagnosis("rig-d28-025")
     assert res["final"]["effects"] == ["sensor_leakage"]
     assert res["recordings"][0]["replay_steps_per_sample"] == 1
+
+
+def test_a_current_limit_between_the_samples_must_beat_a_second_amplifier_stage(rig_diagnosis, monkeypatch):
+    # rig-d29-158: a KP loop with a knee (not named), 751 Hz, a 0.82 + 0.39 ms amplifier and a
+    # 283 Hz first mode at zeta 0.020. At one step per sample the amplifier was first order; replayed
+    # with 11 steps per sample a limit binding on one sample took the training cost from 9186 to 1705
+    # and was named at confidence 1.00. A second amplifier stage in its place fits to 267 (0.80 +
+    # 0.38 ms): the limit is refused for it (stop 84)
+    res = rig_diagnosis("rig-d29-158")
+    assert "amplifier_current_limit" not in res["final"]["effects"], res["final"]["verdict"]
+    (why,) = [r["why"] for r in res["rejected"] if r["effect"] == "amplifier_current_limit"
+              and "between the samples" in r["why"]]
+    assert "second amplifier lag stage" in why
+    # without that rival the limit is named
+    from piezo_fmu.diagnose import between
+    monkeypatch.setattr(between, "_second_stage", lambda *a, **k: (None, 0.0))
+    res = rig_diagnosis("rig-d29-158")
+    assert "amplifier_current_limit" in res["final"]["effects"]
