@@ -18,7 +18,7 @@ accepted mechanism is removed again in turn and must still pass (backward check)
 **confidence** of each finding (:func:`.decide.confidence`) decides where it is reported: at 0.5 or
 more it is a finding (``final.effects``, model.toml); below, a *candidate* with its rival. The
 statistics are in :mod:`.decide`, the rivals settled for the ordinary or simpler reading in
-:mod:`.rivals`.
+:mod:`.rivals`, creep and a drift that pass only together in :mod:`.pairs`.
 """
 from __future__ import annotations
 
@@ -38,6 +38,7 @@ from .loopshape import (LOOP_HELDOUT_BETA, LOOP_HELDOUT_Z, REFIT_WORSE, SHAPE_BE
                         SHAPE_EXPLAINED, SHAPE_EXPLAINED_EACH, SHAPE_FURTHER_EXPLAINED, SHAPE_PARTIAL_BEYOND,
                         SHAPE_PARTIAL_EXPLAINED, SHAPE_PARTIAL_REMOVED, SHAPE_REMOVED, beyond_classical,
                         classical_named, further_from_nominal, loop_beside, shape_from_nominal, unnamed_loop)
+from .pairs import near_miss, slow_pair
 from .recalibrate import ITEM_K, ITEM_PARAMS, drop, present, without
 from .residuals import ACCEPT, full_residuals, heldout_rmse, residual_peaks, residual_sets
 from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, confidences, creep_before_drift, delay_or_lag,
@@ -270,7 +271,8 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
         return _try(fitter, name, None, [(q, dropped)], current, struct, p_base, sets_cur, noise, cctx, recal,
                     step, rnd)
     return {"name": name, "fit": fr, "cmp": cmp, "passed": passed, "why": why,
-            "note": ok[1], "struct": s_new, "sets": sets_new, "bounds": bounds, "dropped": dropped}
+            "note": ok[1], "struct": s_new, "sets": sets_new, "bounds": bounds, "dropped": dropped,
+            "near": not passed and near_miss(cmp, name, ok, bounds)}
 
 
 def _creep_at_floor(name, bounds, p, struct):
@@ -316,6 +318,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     adopted = 0
     sets_cur, _ = residual_sets(fitter, current)
     budget_note, owed = None, []        # owed: physical candidates that passed in a round a finer loop won
+    pending = None      # (the other of a slow pair, the state before the first was added: pairs.py)
     for rnd in range(max_rounds):
         due, owed = owed, []
         if (budget_note := round_stop(fitter, rnd)) is not None:
@@ -377,6 +380,11 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                      f"(screened {gain / max(q0, 1e-300):.3g})")
                 tried.append(_try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cctx,
                                   recal, step, rnd))
+        pair = None if pending is not None or any(t["passed"] for t in tried) else \
+            slow_pair(fitter, tried, current, struct, sets_cur, noise, cctx, step, rnd)
+        if pair is not None:
+            tried = [pair[0] if t["name"] == pair[0]["name"] else t for t in tried]
+            pending = (pair[1], pair[0]["name"], current, struct, len(findings), len(rejected), dict(noise))
         if not any(t["passed"] for t in tried):
             better = None if adopted >= ORDINARY_ADOPTIONS else ordinary_found(fitter, tried, current, struct,
                                                                                   p_base, sets_cur, noise)
@@ -483,6 +491,8 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         alt = max([a for a, _ in others] + [0.0])
         rival = max(others, key=lambda o: o[0])[1] if others else None
         step(f"round {rnd + 1}: added {best['name']}")
+        if pending is not None and best["name"] == pending[0]:
+            pending = None
         prev = next((f for f in findings if f["name"] == best["name"]), None)
         if prev is not None:
             # a further creep element refines the same finding
@@ -521,6 +531,18 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         noise.update(noise_levels(fitter, current)[0])
         sets_cur, _ = residual_sets(fitter, current)
 
+    if pending is not None:
+        other, first, current, struct, n_found, n_rejected, noise_was = pending
+        step(f"{other} did not pass on its own beside {first}: {first}, added for the two together, taken back")
+        del findings[n_found:]
+        del rejected[n_rejected:]
+        rejected += [{"effect": first, "why": f"passed only together with {other}, which then did not pass on "
+                                              "its own"},
+                     {"effect": other, "why": f"did not pass on its own beside {first}"}]
+        noise.clear()
+        noise.update(noise_was)
+        if recal is not None:
+            recal.params = current
     if current.cells_held:
         current = fitter.fit(current.hold_cells(False), struct, max_nfev=6).params
     # -- backward check: every accepted mechanism must still be needed ---------------------------------
