@@ -288,7 +288,6 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
         if struct_final.effects == struct_nom.effects and struct_final.creep_order == struct_nom.creep_order:
             p_base, struct_nom = p_final, struct_final
         elif revisited[0] or struct_base.refined:
-            refitted = True
             step("re-fitting the recalibrated nominal model with the ordinary physics found since")
             fr = fitter.fit(strip(p_from, struct_base, p_base.thresholds), struct_base, max_nfev=10)
             # a refit that ends far worse than the nominal model it replaces has diverged (rig-025:
@@ -297,7 +296,7 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
             # Other ordinary physics may fit worse and still be the story the findings tell (rig-119:
             # the first mode moved from a further mode at 148 Hz to the device's 485 Hz, 2.4 times)
             if struct_base != struct_nom or fr.cost < DIVERGED * fitter.cost(p_base):
-                p_base = fr.params
+                p_base, refitted = fr.params, True
             struct_nom = struct_base
         # (a nominal model not refitted is the one the search started from: searched again, the same)
         if attempt or not findings or not refitted or fitter.out_of_time():

@@ -534,11 +534,12 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     if pending is not None:
         other, first, current, struct, n_found, n_rejected, noise_was = pending
         step(f"{other} did not pass on its own beside {first}: {first}, added for the two together, taken back")
+        later = sorted({f["name"] for f in findings[n_found:] if f["name"] != first})
         del findings[n_found:]
         del rejected[n_rejected:]
-        rejected += [{"effect": first, "why": f"passed only together with {other}, which then did not pass on "
-                                              "its own"},
+        rejected += [{"effect": first, "why": f"passed only together with {other}, which did not pass alone"},
                      {"effect": other, "why": f"did not pass on its own beside {first}"}]
+        rejected += [{"effect": n, "why": f"found beside {first}, taken back with it"} for n in later]
         noise.clear()
         noise.update(noise_was)
         if recal is not None:
