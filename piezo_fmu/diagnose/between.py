@@ -259,7 +259,7 @@ def _second_stage(fit: Fitter, best, struct, free, name="time_delay", base=None)
     else:
         q.slew = math.inf
         fits = []
-        for p in (q, base):
+        for p in (q,) if base is None else (q, base):
             qs = [with_params(p, tau=p.tau * (1.0 - k), tau2=p.tau2 + p.tau * k) for k in LIMIT_STAGE_SHARES]
             start = qs[int(np.argmin(fit.quick_many(qs)))]
             fits.append(fit.fit(start, struct, free=free, max_nfev=10, held=True))

@@ -33,7 +33,7 @@ from .heap import kept
 from .decide import CONFIDENT
 from .recalibrate import adopt_mode, ordinary_names, recalibrate, revisit
 from .recordings import load_recordings, make_recordings
-from .residuals import residual_peaks
+from .residuals import heldout_rmse, residual_peaks
 from .results import UNITS, assemble, file_predictions, localise, rmse_as_given, to_model
 from .select import ACCEPT, FAST, full_residuals, noise_levels, residual_sets, select
 from .uncertainty import channel_uncertainty, uncertainty
@@ -386,9 +386,9 @@ def _worse_than_nominal(fitter, p_base, p_final):
     """The held-out rmse of every channel under ``p_final`` and ``p_base`` as text when the final
     model fits every channel's held-out data ``RESTART_WORSE`` times worse than the nominal one,
     else None."""
-    sets_b, sets_f = residual_sets(fitter, p_base)[0], residual_sets(fitter, p_final)[0]
-    rms = {c: tuple(math.sqrt(float(np.mean(s[c]["heldout"] ** 2))) for s in (sets_f, sets_b))
-           for c in sets_b}
+    base = heldout_rmse(residual_sets(fitter, p_base)[0])
+    final = heldout_rmse(residual_sets(fitter, p_final)[0])
+    rms = {c: (final[c], base[c]) for c in base}
     if not all(f > RESTART_WORSE * b for f, b in rms.values()):
         return None
     return ", ".join(f"{c} {b:.4g} against {f:.4g} {UNITS[c]}" for c, (f, b) in rms.items())
