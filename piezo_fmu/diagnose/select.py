@@ -41,8 +41,8 @@ from .loopshape import (LOOP_HELDOUT_BETA, LOOP_HELDOUT_Z, REFIT_WORSE, SHAPE_BE
 from .pairs import near_miss, slow_pair
 from .recalibrate import ITEM_K, ITEM_PARAMS, drop, present, without
 from .residuals import ACCEPT, full_residuals, heldout_rmse, residual_peaks, residual_sets
-from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, confidences, creep_before_drift, delay_or_lag,
-                     drift_both, drift_or_creep, ordinary_found, physics_before_shape, resonance_or_mode)
+from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, confidences, creep_before_drift, delay_or_lag, drift_both,
+                     drift_or_creep, ordinary_found, physics_before_shape, resonance_or_mode, shape_after_physics)
 from .starts import swapped_mode
 from .stats import compare
 
@@ -358,7 +358,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         # the loop shape's cells can bend to much that is not a loop shape: the physical candidates
         # are measured against the best of them, not against the shape
         top = max([g for g, n, _, _ in screened if n != "hysteresis_shape"] + [0.0])
-        for i, (gain, name, start, alts) in enumerate(screened[:4]):
+        for i, (gain, name, start, alts) in enumerate(shape_after_physics(screened)[:4]):
             # the best screened candidate, the next ones when they come close to it, and further ones
             # (down the screening order) as long as nothing tried so far passed
             if gain <= 0 or (i >= 1 and gain < 0.4 * top and any(t["passed"] for t in tried)
