@@ -1,6 +1,6 @@
 """Sensor leakage against a slow drift of the sensor offset (not in the catalogue): the drift the
 leakage is weighed against may wander (a quadratic in time, or a line in each of a few parts of the
-record), and it cannot draw the level-dependent decays after the command's jumps."""
+record), and neither draws the level-dependent decays after the command's jumps."""
 from __future__ import annotations
 
 import math
@@ -47,23 +47,16 @@ def test_an_offset_wandering_in_straight_parts_explains_the_sensor_as_well_as_le
     fitter, p, _ = _case(wander, math.inf)
     q = p.copy()
     q.tau_leak = 3 * T
-    alt, own = catalogue._offset_trend_alternative(fitter, q)
+    quad, parts, own = catalogue._offset_trend_alternative(fitter, q)
     assert own > 3 * NOISE
-    assert alt < 0.5 * NOISE                      # "as well": leakage not singled out
-    # a quadratic alone (the alternative before stop 85) leaves more than the noise
-    parts = catalogue.OFFSET_PARTS
-    catalogue.OFFSET_PARTS = 1                    # one part: a straight line, never better than the quadratic
-    try:
-        alt_q, _ = catalogue._offset_trend_alternative(fitter, q)
-    finally:
-        catalogue.OFFSET_PARTS = parts
-    assert alt_q > NOISE
+    assert parts < 0.5 * NOISE < own               # in straight parts: as well as leakage, and better
+    assert quad > NOISE                            # a quadratic (the alternative before stop 85) is not
 
 
 def test_the_decays_of_true_leakage_are_not_drawn_by_a_wandering_offset():
     # leakage with a 0.5 s time constant: after every level of the staircase the sensor decays;
     # the leakage model leaves the noise, the offset drift in any of its forms far more
     fitter, _, q = _case(lambda t: 0.0 * t, 0.5)
-    alt, own = catalogue._offset_trend_alternative(fitter, q)
+    quad, parts, own = catalogue._offset_trend_alternative(fitter, q)
     assert own < 0.5 * NOISE
-    assert alt > own + 5 * NOISE
+    assert min(quad, parts) > own + 5 * NOISE
