@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 
-from piezo_fmu.diagnose import catalogue
+from piezo_fmu.diagnose import offsets
 from piezo_fmu.diagnose.engine import device_from_model, params_from_model, predict
 from piezo_fmu.diagnose.fit import Fitter
 from piezo_fmu.diagnose.recordings import make_recordings
@@ -47,7 +47,7 @@ def test_an_offset_wandering_in_straight_parts_explains_the_sensor_as_well_as_le
     fitter, p, _ = _case(wander, math.inf)
     q = p.copy()
     q.tau_leak = 3 * T
-    quad, parts, own = catalogue._offset_trend_alternative(fitter, q)
+    quad, parts, own = offsets.offset_drift_rival(fitter, q)
     assert own > 3 * NOISE
     assert parts < 0.5 * NOISE < own               # in straight parts: as well as leakage, and better
     assert quad > NOISE                            # a quadratic (the alternative before stop 85) is not
@@ -57,6 +57,6 @@ def test_the_decays_of_true_leakage_are_not_drawn_by_a_wandering_offset():
     # leakage with a 0.5 s time constant: after every level of the staircase the sensor decays;
     # the leakage model leaves the noise, the offset drift in any of its forms far more
     fitter, _, q = _case(lambda t: 0.0 * t, 0.5)
-    quad, parts, own = catalogue._offset_trend_alternative(fitter, q)
+    quad, parts, own = offsets.offset_drift_rival(fitter, q)
     assert own < 0.5 * NOISE
     assert min(quad, parts) > own + 5 * NOISE

@@ -23,7 +23,8 @@ from .engine import amplifier_output, at_samples, chain, lowpass, predict, trend
 from .delays import delay_search
 from .drifts import drift_start
 from .fit import Fitter, Structure
-from .residuals import MODE_BAND_WIDTH, SLOW_HELDOUT_MIN, band_share, taken_in_holds
+from .offsets import OFFSET_PARTS, offset_drift_rival
+from .residuals import MODE_BAND_WIDTH, band_share, taken_in_holds
 from .starts import further_mode_start, log_grid, swap_lag_account, with_params
 from .stats import near_range_end
 
@@ -331,60 +332,6 @@ def _quick_creep_sets(fitter: Fitter, p, sets):
             yield cost, gs, tset
 
 
-# a slow drift of the sensor offset (the alternative to leakage): quadratic in time, which need only
-# come within half the noise rms of the leakage's fit, or straight over this many equal parts of the
-# record, which must fit as well as the leakage or better (its five parameters follow a slow decay:
-# rig-d29-171, true leakage of 6.5 s in 17.6 s, left 0.00133 V in four parts against the leakage's
-# 0.00111, within half its 0.0025 noise). rig-d28-065, a control whose sensor offset wanders through
-# 5-9 random knots: the quadratic left 0.00174 V against the leakage's 0.00116, in four parts 0.00098;
-# a false leakage had been named at 0.97. Over 19 true leakage cases of the rig and 13 of synth
-# (stop 85) four parts left more than the leakage in each; eight parts came level in rig-d28-025
-OFFSET_PARTS = 4
-
-
-def _offset_trend_alternative(fitter: Fitter, p):
-    """Structured sensor residual (rms above the noise floor, training rows) of the leakage model
-    ``p`` and of the same model with the leakage replaced by a slow drift of the offset: a quadratic
-    in time, and a line in each of :data:`OFFSET_PARTS` parts of the record. Returns ``(quadratic,
-    parts, own)`` [V].
-
-    Over the training rows away from the command's jumps when at least
-    :data:`.residuals.SLOW_HELDOUT_MIN` of them are (a slow mechanism's own rows, as its held-out
-    statistics): the transients after the jumps are the fast dynamics' and the loop's, the same
-    in both models, and a misfit there raised both rms alike and hid the difference (rig-d21-165:
-    0.00598 against 0.00537 V over all rows, "as well", where the leakage took the held-out
-    sensor rmse away from the jumps from 0.0151 to 0.00126 V)."""
-    q = p.copy()
-    q.tau_leak = math.inf
-    recs = [r for r in fitter.recs if r.us is not None]
-    rows = [r.train for r in recs]
-    quiet = [r.train if r.transient is None else r.train & ~r.transient for r in recs]
-    if sum(int(m.sum()) for m in quiet) >= SLOW_HELDOUT_MIN * sum(int(m.sum()) for m in rows):
-        rows = quiet
-    e_own, e_alt, ts = [], [], []
-    for r, m in zip(recs, rows):
-        e_own.append((r.us - predict(r, fitter.dev, p, direct=True)["us"])[m])
-        e_alt.append((r.us - predict(r, fitter.dev, q, direct=True)["us"])[m])
-        ts.append(r.t[m])
-    e1, e0, t = np.concatenate(e_own), np.concatenate(e_alt), np.concatenate(ts)
-    t = t / max(float(np.max(t)), 1e-12)
-    knots = np.linspace(0.0, 1.0, OFFSET_PARTS + 1)
-    eqs = []
-    for a in (np.vstack([np.ones_like(t), t, t * t]).T,
-              np.vstack([np.interp(t, knots, row) for row in np.eye(knots.size)]).T):
-        coef, *_ = np.linalg.lstsq(a, e0, rcond=None)
-        eqs.append(e0 - a @ coef)
-    # (the noise is at most what the leakage model leaves: a level estimated above it, or bounded by
-    # this very candidate's held-out rmse, :data:`.stats.NOISE_BOUND`, would leave both at 0 and call
-    # any alternative "as well"; rig-d23-161, 164)
-    s2 = min(fitter.noise.get("us", 0.0) ** 2, float(np.mean(e1 * e1)))
-
-    def structured(e):
-        return math.sqrt(max(float(np.mean(e * e)) - s2, 0.0))
-
-    return structured(eqs[0]), structured(eqs[1]), structured(e1)
-
-
 def _under_force(fitter: Fitter, p):
     """Whether the recording starts under a force: operators prepared before it, or a command away
     from 0 V at its first sample."""
@@ -488,7 +435,7 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
     if name == "sensor_leakage":
         if p_after.tau_leak > 100 * T:
             return False, "leakage time constant far beyond the recording: no visible decay"
-        quad, parts, own = _offset_trend_alternative(fitter, p_after)
+        quad, parts, own = offset_drift_rival(fitter, p_after)
         noise = ch["us"]["noise"]
         as_well = [(alt, what) for alt, what, bar in ((quad, "quadratic in time", own + 0.5 * noise),
                                                        (parts, f"straight in {OFFSET_PARTS} parts", own))
