@@ -437,9 +437,11 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
             return False, "leakage time constant far beyond the recording: no visible decay"
         quad, parts, own = offset_drift_rival(fitter, p_after)
         noise = ch["us"]["noise"]
-        as_well = [(alt, what) for alt, what, bar in ((quad, "quadratic in time", own + 0.5 * noise),
-                                                       (parts, f"straight in {OFFSET_PARTS} parts", own))
-                   if alt <= bar]
+        # (the offset straight in parts only against a leakage slower than the record: one that
+        # completes no decay there draws a smooth wander of the sensor voltage, as an offset drift)
+        rivals = [(quad, "quadratic in time", own + 0.5 * noise)] + (
+            [(parts, f"straight in {OFFSET_PARTS} parts", own)] if p_after.tau_leak > T else [])
+        as_well = [(alt, what) for alt, what, bar in rivals if alt <= bar]
         if as_well:
             alt, what = as_well[0]
             return False, (f"a slow drift of the sensor offset ({what}; not in the catalogue) "

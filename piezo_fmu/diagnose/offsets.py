@@ -4,7 +4,7 @@ A charge amplifier's offset that wanders over a recording (its temperature, its 
 the sensor voltage slowly, as leakage does; what singles leakage out is its decays after the
 command's jumps, whose size follows the force there. :func:`offset_drift_rival` measures how well
 each account explains the sensor voltage; :func:`.catalogue.plausible` names leakage only when the
-drift does not explain it as well.
+drift does not explain it as well (in parts only against a leakage slower than the record).
 """
 from __future__ import annotations
 
@@ -19,13 +19,14 @@ from .residuals import SLOW_HELDOUT_MIN
 __all__ = ["OFFSET_PARTS", "offset_drift_rival"]
 
 # a slow drift of the sensor offset (the alternative to leakage): quadratic in time, which need only
-# come within half the noise rms of the leakage's fit, or straight over this many equal parts of the
-# record, which must fit as well as the leakage or better (its five parameters follow a slow decay:
-# rig-d29-171, true leakage of 6.5 s in 17.6 s, left 0.00133 V in four parts against the leakage's
-# 0.00111, within half its 0.0025 noise). rig-d28-065, a control whose sensor offset wanders through
-# 5-9 random knots: the quadratic left 0.00174 V against the leakage's 0.00116, in four parts 0.00098;
-# a false leakage had been named at 0.97. Over 19 true leakage cases of the rig and 13 of synth
-# (stop 85) four parts left more than the leakage in each; eight parts came level in rig-d28-025
+# come within half the noise rms of the leakage's fit, or, against a leakage slower than the record,
+# straight over this many equal parts of it, which must fit as well as the leakage or better.
+# rig-d28-065, a control whose sensor offset wanders through 5-9 random knots: a leakage of 29 s in
+# 19.8 s left 0.00116 V, the quadratic 0.00174, four parts 0.00098; a false leakage had been named at
+# 0.97. Against faster leakage the parts follow its decays where the command's levels are few: true
+# leakage of 6.5 s in 17.6 s (rig-d29-171) and 8.4 s in 16.4 s beside creep (rig-d30-068) left 0.00111
+# and 0.00255 V, four parts 0.00133 and 0.00226. Over 20 true leakage cases of the rig and 13 of synth
+# (stop 85) four parts left more than the leakage in all others; eight parts came level in rig-d28-025
 OFFSET_PARTS = 4
 
 
