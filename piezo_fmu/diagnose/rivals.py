@@ -68,13 +68,13 @@ def shape_after_physics(screened):
     what a round whose budget ends after one fit still tries (rig-d29-061, a delay and a drift at
     10.5 kHz: round 2 screened the shape 0.215 and the delay 0.209, fitted the shape, which went into
     the recalibration, and ran out of budget; given the time the delay passed and was named at 0.61).
-    With time for both, both are fitted and :func:`physics_before_shape` decides as before."""
+    With time for both, both are fitted and :func:`physics_before_shape` decides as before (the
+    caller takes the first four of the screening before reordering them: the same ones are fitted)."""
     shape = [s for s in screened if s[1] == "hysteresis_shape"]
     if not shape:
         return list(screened)
     ahead = [s for s in screened if s[1] != "hysteresis_shape" and s[0] >= SHAPE_LAST * shape[0][0] > 0]
-    rest = [s for s in screened if s not in ahead]
-    return ahead + rest
+    return ahead + [s for s in screened if all(s is not a for a in ahead)]
 
 
 def physics_before_shape(best, tried, step, rnd):

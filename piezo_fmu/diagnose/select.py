@@ -358,7 +358,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         # the loop shape's cells can bend to much that is not a loop shape: the physical candidates
         # are measured against the best of them, not against the shape
         top = max([g for g, n, _, _ in screened if n != "hysteresis_shape"] + [0.0])
-        for i, (gain, name, start, alts) in enumerate(shape_after_physics(screened)[:4]):
+        for i, (gain, name, start, alts) in enumerate(shape_after_physics(screened[:4])):
             # the best screened candidate, the next ones when they come close to it, and further ones
             # (down the screening order) as long as nothing tried so far passed
             if gain <= 0 or (i >= 1 and gain < 0.4 * top and any(t["passed"] for t in tried)
