@@ -2030,10 +2030,10 @@ def test_leakage_is_weighed_against_an_offset_trend_away_from_the_jumps(spy):
 
     rec, raw = _rig_recording("rig-d21-165")
     assert rec.truth["mechanisms"] == ["sensor_leakage"]
-    seen = spy(catalogue, "_offset_trend_alternative")
+    seen = spy(catalogue, "offset_drift_rival")
     res = analyse(raw).result
     assert res["final"]["effects"] == ["sensor_leakage"], (res["candidates"], res["rejected"])
-    alt, fit = seen[-1]          # [V] structured sensor residual: the quadratic's, the leakage's
+    alt, _, fit = seen[-1]       # [V] structured sensor residual: the quadratic's, the leakage's
     assert alt > fit + 0.5 * res["final"]["tests"]["us"]["noise"], seen     # 0.0018 against 0.0 V
     assert res["final"]["rmse"]["us"] < 0.3 * res["baseline"]["rmse"]["us"]
 
@@ -2050,10 +2050,10 @@ def test_leakage_is_weighed_against_an_offset_trend_with_the_noise_at_most_what_
 
     rec, raw = _rig_recording("rig-d23-161")
     assert sorted(rec.truth["mechanisms"]) == ["hysteresis_shape", "sensor_leakage"]
-    seen = spy(catalogue, "_offset_trend_alternative")
+    seen = spy(catalogue, "offset_drift_rival")
     res = analyse(raw).result
     assert "sensor_leakage" in res["final"]["effects"], (res["candidates"], res["rejected"])
-    alt, fit = seen[0]          # [V] structured sensor residual: the quadratic's, the leakage's
+    alt, _, fit = seen[0]       # [V] structured sensor residual: the quadratic's, the leakage's
     assert fit == 0.0 and alt > 0.005, seen
     assert res["final"]["rmse"]["us"] < 0.3 * res["baseline"]["rmse"]["us"]
 
