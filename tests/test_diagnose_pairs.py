@@ -26,3 +26,20 @@ def _spy(fn, said):
         said.append(out is not None)
         return out
     return spy
+
+
+def test_creep_takes_a_drift_s_place_when_it_fits_better_by_the_evidence_a_name_needs(rig_diagnosis):
+    # rig-d30-068: creep (log law, 3.3 decades over 16.4 s: up in a 9.8 s hold at 30 V, down after the
+    # return to 0 V) and a sensor leakage (8.4 s, 96 x the noise on the sensor). Round 1 fitted the
+    # drift first (screening 0.95 against creep's 0.41) and creep, measured against the leakage not yet
+    # in, made the sensor 9.5 % worse; once the leakage was in, the drift had taken creep's place and
+    # the drift was named (stop 85). Creep in the drift's place, checked at the end, fits better by
+    # BIC 51.8 (training cost 8423 -> 2128): creep is named, the drift is not (measured stop 86)
+    res = rig_diagnosis("rig-d30-068")
+    assert sorted(res["final"]["effects"]) == ["creep", "sensor_leakage"], res["final"]["verdict"]
+    assert all(f["confidence"] >= 0.5 for f in res["findings"])
+    why = next(r["why"] for r in res["rejected"] if r["effect"] == "thermal_drift")
+    assert why.startswith("creep in its place fits better"), why
+    creep = next(f for f in res["findings"] if f["effect"] == "creep")
+    assert creep["evidence"]["strongest_alternative"]["effect"] == "thermal_drift"
+    assert all(res["final"]["rmse"][c] < res["baseline"]["rmse"][c] for c in ("x", "us"))

@@ -26,7 +26,9 @@ def summary(res):
                      + (f"  e.g. {where['t0_s']:.3g}-{where['t1_s']:.3g} s" if where else ""))
         rival = f["evidence"].get("strongest_alternative")
         if rival and rival["passed"]:
-            lines.append(f"  {'':<24} (the data nearly as well support {rival['effect']}: explains "
+            how = (f"also support {rival['effect']}, BIC {rival['bic_behind']:g} behind" if "bic_behind" in rival
+                   else f"nearly as well support {rival['effect']}")
+            lines.append(f"  {'':<24} (the data {how}: explains "
                          + ", ".join(f"{c} {100 * v:.0f} %" for c, v in rival["explained_share"].items()) + ")")
     for c in res.get("candidates", []):
         lines.append(f"  candidate {c['effect']:<14} confidence {c['confidence']:.2f} (below 0.5: not in the model)")
