@@ -24,7 +24,7 @@ from .delays import delay_search
 from .drifts import drift_start
 from .fit import Fitter, Structure
 from .offsets import OFFSET_PARTS, offset_drift_rival
-from .residuals import MODE_BAND_WIDTH, band_share, taken_in_holds
+from .residuals import MODE_BAND_WIDTH, band_share, holds_still, taken_in_holds
 from .starts import further_mode_start, log_grid, swap_lag_account, with_params
 from .stats import near_range_end
 
@@ -421,6 +421,11 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
         g, tau = p_after.creep[-1]
         if g < 0.003:
             return False, f"creep gain {g:.3g} is negligible"
+        if not any(holds_still(r.u, r.dt) for r in fitter.recs):
+            # (rig-d30-151, d31-082, 101: creep named beside a drift, a delay, on a control, each on
+            # chirps or a triangle; every true creep named in the rig's draws 0 and 28-31 had a hold)
+            return False, ("the command never holds still: creep, the slow motion after input changes, "
+                           "cannot be told there from a rate-dependent loop")
         if "x" in ch and "us" in ch and ch["us"]["explained"] > 0.3 and ch["x"]["explained"] < 0.05 \
                 and ch["x"]["structured_before"] > 2 * ch["x"]["noise"]:
             return False, "helps the sensor voltage only, which creep cannot do (creep moves both)"

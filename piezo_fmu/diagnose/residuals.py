@@ -15,8 +15,9 @@ from .engine import predict
 from .fit import Fitter
 from .stats import psd
 
-__all__ = ["ACCEPT", "MODE_BAND_WIDTH", "SLOW_HELDOUT_MIN", "band_share", "full_residuals", "heldout_rmse",
-           "hold_runs", "residual_peaks", "residual_sets", "spectral_peaks", "taken_in_holds"]
+__all__ = ["ACCEPT", "MODE_BAND_WIDTH", "SLOW_HELDOUT_MIN", "STILL_SHARE", "band_share", "full_residuals",
+           "heldout_rmse", "hold_runs", "holds_still", "residual_peaks", "residual_sets", "spectral_peaks",
+           "taken_in_holds"]
 
 MODE_BAND_WIDTH = 1.25   # a mode's own band: f_n / width .. f_n * width
 ACCEPT = {
@@ -131,6 +132,23 @@ def hold_runs(u, dt):
     skip = int(round(HOLD_SETTLE_S / dt))
     return [(int(a) + skip, int(b)) for a, b in zip(edges[:-1], edges[1:])
             if (b - a) * dt >= HOLD_MIN_S and b - a - skip > 10]
+
+
+STILL_SHARE = 0.01     # a command within this share of its span for HOLD_MIN_S holds still (measured too)
+
+
+def holds_still(u, dt) -> bool:
+    """Whether the command ``u`` stays within ``STILL_SHARE`` of its span for at least ``HOLD_MIN_S``
+    somewhere (two adjacent blocks of half that length): a hold, also where the command was
+    measured and carries noise (JPK01466's 3 s hold; :func:`hold_runs` asks for an exact one)."""
+    span = float(np.ptp(u))
+    n = max(int(round(0.5 * HOLD_MIN_S / dt)), 2)
+    m = u.size // n
+    if span <= 0.0 or m < 2:
+        return span <= 0.0
+    b = np.asarray(u[: m * n]).reshape(m, n)
+    lo, hi = b.min(axis=1), b.max(axis=1)
+    return bool(np.any(np.maximum(hi[1:], hi[:-1]) - np.minimum(lo[1:], lo[:-1]) <= STILL_SHARE * span))
 
 
 def taken_in_holds(fitter: Fitter, p_before, p_after, ch, own=None):
