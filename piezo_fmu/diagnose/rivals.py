@@ -148,9 +148,9 @@ def creep_before_drift(best, tried, struct, step, rnd):
 def drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise, cctx, step):
     """With a drift and no creep accepted: :func:`creep_for_drift`. With creep and a drift that
     reaches both channels accepted, try the drift as one more creep element (a slow element grows
-    with the stroke's integral: a trend under a unipolar drive). When that model is within the BIC threshold of the one with the drift (the same number of
-    parameters, or fewer), the drift is not needed: creep takes its place. Returns ``(p, struct,
-    findings)``.
+    with the stroke's integral: a trend under a unipolar drive). When that model is within the BIC
+    threshold of the one with the drift (the same number of parameters, or fewer), the drift is not
+    needed: creep takes its place. Returns ``(p, struct, findings)``.
 
     A drift of the displacement alone is not tried so: tried (2026-11-28), it dropped rig-d2-169's
     false drift (BIC -0.8) but on draw 3, the test, two true drifts beside creep (rig-d3-009 and
