@@ -57,7 +57,8 @@ def test_a_command_holds_still_where_it_stays_within_a_percent_of_its_span_measu
     assert not holds_still(np.sin(2 * np.pi * (0.5 + 5 * t) * t), dt)       # nor a chirp
     hold = np.where(t < 1.0, np.sin(2 * np.pi * t), 0.0)                    # a sine, then 3 s at 0 V
     assert holds_still(hold, dt)
-    # measured: noise of 0.2 % of the span on the hold still holds; a slow ramp (5 % in 0.2 s) does not
+    # measured: noise of 0.002 rms (0.1 % of the span) on the hold still holds; a slow ramp (3 % of the
+    # span in 0.2 s) does not
     assert holds_still(hold + 0.002 * rng.standard_normal(t.size), dt)
     assert not holds_still(np.where(t < 1.0, np.sin(2 * np.pi * t), 0.25 * (t - 1.0)), dt)
 

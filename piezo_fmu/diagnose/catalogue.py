@@ -423,7 +423,7 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
             return False, f"creep gain {g:.3g} is negligible"
         if not any(holds_still(r.u, r.dt) for r in fitter.recs):
             # (rig-d30-151, d31-082, 101: creep named beside a drift, a delay, on a control, each on
-            # chirps or a triangle; every true creep named in the rig's draws 0 and 28-31 had a hold)
+            # chirps or a triangle; every true creep of the rig's draws 0 and 28-31 run had a hold)
             return False, ("the command never holds still: creep, the slow motion after input changes, "
                            "cannot be told there from a rate-dependent loop")
         if "x" in ch and "us" in ch and ch["us"]["explained"] > 0.3 and ch["x"]["explained"] < 0.05 \
