@@ -161,20 +161,10 @@ def drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise, c
     if not {"creep", "thermal_drift"} <= names or current.pick != "load" or struct.creep_order >= DRIFT_AS_CREEP:
         return current, struct, findings
     step("checking whether a further creep element explains the drift in both channels")
-    s_wo = struct.without("thermal_drift")
-    base = strip(current, s_wo, p_base.thresholds)
-    base.pick = p_base.pick
-    start = propose("creep", fitter, base, s_wo, {**cctx, "creep_max": DRIFT_AS_CREEP})
-    if start is None:
+    swap = _creep_in_drift_place(fitter, current, struct, p_base, cctx)
+    if swap is None:
         return current, struct, findings
-    s_sw = s_wo.with_effect("creep", 0, len(start.creep))
-    # converged, not a first descent: after 10 evaluations rig-077's creep in the drift's place
-    # stood at BIC 1.0 or 11.1 from starts differing in the last digits (the threshold is 10); after
-    # 20 at 0.0 from both (-0.1 after 30)
-    fr = fitter.fit(start, s_sw, max_nfev=20)
-    full = fitter.cost(current)
-    k = struct.n_params() - s_sw.n_params()
-    worth = fitter.n_eff * math.log(max(fr.cost, 1e-300) / max(full, 1e-300)) - k * math.log(max(fitter.n_eff, 2.0))
+    fr, s_sw, worth, _ = swap
     need = ACCEPT["dbic"]
     if worth >= need:
         step(f"the drift stays: creep in its place leaves a BIC {worth:.1f} worse")
@@ -207,18 +197,11 @@ def creep_for_drift(fitter, current, struct, findings, rejected, p_base, noise, 
     warm-up can be drawn nearly as well by one creep element slower than the record (rig-d30-023:
     BIC 5 better, within the threshold). Returns ``(p, struct, findings)``."""
     step("checking whether creep explains the drift as well")
-    s_wo = struct.without("thermal_drift")
-    base = strip(current, s_wo, p_base.thresholds)
-    base.pick = p_base.pick
-    without = fitter.fit(base, s_wo, max_nfev=5)
-    start = propose("creep", fitter, without.params, s_wo, {**cctx, "creep_max": DRIFT_AS_CREEP})
-    if start is None:
+    swap = _creep_in_drift_place(fitter, current, struct, p_base, cctx, refit=True)
+    if swap is None:
         return current, struct, findings
-    s_cr = s_wo.with_effect("creep", 0, len(start.creep))
-    fr = fitter.fit(start, s_cr, max_nfev=20)
-    k = struct.n_params() - s_cr.n_params()
-    worth = (fitter.n_eff * math.log(max(fr.cost, 1e-300) / max(fitter.cost(current), 1e-300))
-             - k * math.log(max(fitter.n_eff, 2.0)))
+    fr, s_cr, worth, without = swap
+    s_wo = struct.without("thermal_drift")
     sets_wo, _ = residual_sets(fitter, without.params)
     sets_new, _ = residual_sets(fitter, fr.params)
     cmp = compare(sets_wo, sets_new, s_cr.n_params() - s_wo.n_params(), noise, slow=True)
@@ -243,6 +226,31 @@ def creep_for_drift(fitter, current, struct, findings, rejected, p_base, noise, 
     findings[-1].pop("backward", None)
     noise.update(noise_levels(fitter, fr.params)[0])
     return fr.params, s_cr, findings
+
+
+def _creep_in_drift_place(fitter, current, struct, p_base, cctx, refit=False):
+    """Creep (up to :data:`DRIFT_AS_CREEP` elements) proposed and fitted in the place of the drift of
+    ``current``, the sensor's pick-off the recalibration's; ``refit``: proposed from the model without
+    the drift refitted (5 evaluations), not from the drift merely stripped. Returns ``(fit, struct,
+    worth, without)``: ``worth`` the BIC by which that model is worse than ``current`` (below zero:
+    better), ``without`` the refit (or ``None``); ``None`` when no creep start is proposed."""
+    s_wo = struct.without("thermal_drift")
+    base = strip(current, s_wo, p_base.thresholds)
+    base.pick = p_base.pick
+    without = fitter.fit(base, s_wo, max_nfev=5) if refit else None
+    start = propose("creep", fitter, base if without is None else without.params, s_wo,
+                    {**cctx, "creep_max": DRIFT_AS_CREEP})
+    if start is None:
+        return None
+    s_cr = s_wo.with_effect("creep", 0, len(start.creep))
+    # converged, not a first descent: after 10 evaluations rig-077's creep in the drift's place
+    # stood at BIC 1.0 or 11.1 from starts differing in the last digits (the threshold is 10); after
+    # 20 at 0.0 from both (-0.1 after 30)
+    fr = fitter.fit(start, s_cr, max_nfev=20)
+    k = struct.n_params() - s_cr.n_params()
+    worth = (fitter.n_eff * math.log(max(fr.cost, 1e-300) / max(fitter.cost(current), 1e-300))
+             - k * math.log(max(fitter.n_eff, 2.0)))
+    return fr, s_cr, worth, without
 
 
 def resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd):
