@@ -74,6 +74,21 @@ def test_a_one_sample_delay_beside_a_fast_lag_is_named_between_the_samples(rig_d
     assert res["recordings"][0]["replay_steps_per_sample"] == 1
 
 
+def test_a_delay_is_searched_beside_a_first_mode_recalibrated_below_the_finer_search_span(rig_diagnosis):
+    # rig-d31-073: a 1.4 ms delay (3 samples at 2.14 kHz), a second-order 0.3 + 0.1 ms amplifier and a
+    # first mode at 260 Hz (0.12 x the sample rate), recalibrated at one step per sample to 201 Hz.
+    # The finer search's range for the mode began at 0.15 x the rate (321 Hz), so the delay's fit had
+    # its mode at a bound and failed (stop 86's draw 31: nothing named); with the range reaching down
+    # to the recalibrated mode the delay is named (confidence 0.89, BIC 4920 better than a second stage)
+    res = rig_diagnosis("rig-d31-073")
+    fin = res["final"]
+    assert fin["effects"] == ["time_delay"], fin["verdict"]
+    (f,) = res["findings"]
+    assert f["confidence"] >= 0.5
+    assert all(fin["rmse"][c] < res["baseline"]["rmse"][c] for c in ("x", "us"))
+    assert not any("mech_f" in r["why"] and "bound" in r["why"] for r in res["rejected"]), res["rejected"]
+
+
 def test_a_current_limit_ramping_the_jumps_over_a_sample_is_named_between_the_samples(rig_diagnosis, monkeypatch):
     # rig-d28-025: sensor leakage and a current limit (Bouc-Wen loop) at 1.24 kHz, a 0.39 ms
     # amplifier and an 819 Hz first mode. At one step per sample a 1.0 + 0.4 ms lag drew the ramps
