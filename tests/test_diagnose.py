@@ -2382,6 +2382,16 @@ def test_recognition_scores_count_names_hidden_mechanisms_and_kinds():
     assert "silent miss" in table and "20.0 %" in table
 
 
+def test_the_search_budget_grows_in_proportion_beyond_twenty_seconds_at_ten_kilohertz():
+    # 40 reference seconds up to 200 k samples (the speed goal's record), in proportion beyond: a
+    # 338 k-sample record stopped after round 1 with its delay and drift unsearched (rig draw 31)
+    from piezo_fmu.diagnose.budget import BUDGET_SAMPLES, WORK_PER_S, work_budget
+
+    assert work_budget(40.0, 1_000) == work_budget(40.0, BUDGET_SAMPLES) == 40.0 * WORK_PER_S
+    assert work_budget(40.0, 2 * BUDGET_SAMPLES) == 2 * work_budget(40.0, BUDGET_SAMPLES)
+    assert work_budget(40.0, 300_000) == 1.5 * 40.0 * WORK_PER_S
+
+
 def test_the_search_budget_is_work_so_a_busy_machine_searches_the_same(monkeypatch):
     # a budget small enough to end the search early: on an idle machine, and on one whose CPU clock
     # runs 1000 s per reading (a machine busy with other jobs, or very slow), the same candidates

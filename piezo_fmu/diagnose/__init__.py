@@ -40,7 +40,8 @@ def diagnose(recordings, model=None, out=None, *, force=False, columns=None, sca
     figures : bool
         Write the PNG figures (report.html embeds them).
     time_budget_s : float or None
-        Search budget [s of the reference machine]: after that much work no further candidate
+        Search budget [s of the reference machine per 200 k samples, the budget growing in
+        proportion for a longer record]: after that much work no further candidate
         search is started (what was found stays; diagnosis.json says so); ``None``: no limit.
         Counted as work (samples simulated), not time, so the result does not depend on the
         machine or its load.

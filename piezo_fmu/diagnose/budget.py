@@ -13,9 +13,14 @@ first :data:`FITTED_ROUNDS` whose screening ends past it fits nothing.
 """
 from __future__ import annotations
 
-__all__ = ["FITTED_ROUNDS", "TIME_BUDGET_S", "WORK_PER_S", "round_stop"]
+__all__ = ["BUDGET_SAMPLES", "FITTED_ROUNDS", "TIME_BUDGET_S", "WORK_PER_S", "round_stop", "work_budget"]
 
 TIME_BUDGET_S = 40.0     # [s of the reference machine]
+# the samples (time steps over all recordings) the budget is meant for: 20 s at 10 kHz; a longer
+# record gets a budget in proportion (each of its fits costs that much more). Of the rig's misses
+# in draws 28-31, 8 records of 216-338 k samples had stopped for the budget; in proportion, rig-d31-180
+# gains its loop shape and rig-d29-001 its creep, the other 6 name the same (53-93 s two at a time)
+BUDGET_SAMPLES = 200_000
 WORK_PER_S = 1.2e7       # work units per second of the reference machine
 # The rounds that fit their best screened candidate even when the screening ended past the budget.
 # A later round begun just under it screened past it and fitted on: rig-d14-095 (`bench`'s slowest
@@ -25,6 +30,12 @@ WORK_PER_S = 1.2e7       # work units per second of the reference machine
 # (rig-136's leakage, rig-d20-031's delay, rig-d20-098's loop shape: each in a long record whose
 # round 1 took most of the budget) for one false further mode (rig-d20-081)
 FITTED_ROUNDS = 2
+
+
+def work_budget(seconds, n_samples):
+    """The search budget in work units (:data:`WORK_PER_S` per reference second) for ``seconds`` of
+    the reference machine per :data:`BUDGET_SAMPLES` samples, never less than ``seconds``' worth."""
+    return seconds * WORK_PER_S * max(1.0, n_samples / BUDGET_SAMPLES)
 
 
 def round_stop(fitter, rnd, screened=None):

@@ -25,7 +25,7 @@ from ..errors import UserError
 from ..model import Model, load_model
 from . import locate, workers
 from .between import between_samples, delay_between, limit_between
-from .budget import TIME_BUDGET_S, WORK_PER_S
+from .budget import TIME_BUDGET_S, WORK_PER_S, work_budget
 from .blas import single_thread
 from .engine import Device, Params, device_from_model, params_from_model, predict
 from .fit import Fitter, Structure, strip
@@ -82,8 +82,8 @@ def analyse(raw, model: Model | None = None, say=None, max_rounds=5, time_budget
     ``replay_rate`` [Hz]: replay a recording sampled slower with internal steps up to this rate
     (:func:`.recordings.internal_steps`; default one step per sample).
 
-    ``time_budget_s``: after the work of this many seconds on the reference machine no further
-    candidate search is started (what was found stays; ``diagnosis.json`` says so under
+    ``time_budget_s``: after the work of this many seconds on the reference machine (per
+    :data:`.budget.BUDGET_SAMPLES` samples for a longer record) no further candidate search is started (what was found stays; ``diagnosis.json`` says so under
     ``rejected``); ``None`` for no limit. Counted as work (``WORK_PER_S``), not time: the result
     does not depend on the machine or its load.
 
@@ -172,7 +172,7 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
            for c in chans}
     fitter = Fitter(recs, dev, lam, say)
     if time_budget_s is not None:
-        fitter.budget = time_budget_s * WORK_PER_S
+        fitter.budget = work_budget(time_budget_s, sum(r.n for r in recs))
     p = p_nom.copy()
     y_sat_nom = p.y_sat
     p.y_sat = math.inf
