@@ -2392,6 +2392,24 @@ def test_the_search_budget_grows_in_proportion_beyond_twenty_seconds_at_ten_kilo
     assert work_budget(40.0, 300_000) == 1.5 * 40.0 * WORK_PER_S
 
 
+def test_after_the_budget_a_round_s_runner_up_is_fitted_once_beside_what_it_named():
+    # the best-screened physical candidate of round 1 when it named something, before round 2; not a
+    # loop shape, not one with a negative screening gain, not one in the model
+    from piezo_fmu.diagnose.budget import runner_up
+    from piezo_fmu.diagnose.fit import Structure
+
+    # (the round's screening, best first)
+    screened = [(5.0, "amplifier_current_limit"), (0.4, "hysteresis_shape"), (0.3, "thermal_drift"),
+                (0.2, "sensor_leakage"), (-1.0, "creep")]
+    named = Structure().with_effect("amplifier_current_limit")
+    assert runner_up((0, screened, "amplifier_current_limit"), 1, named) == "thermal_drift"
+    assert runner_up((0, screened, "amplifier_current_limit"), 1, named.with_effect("thermal_drift")) == "sensor_leakage"
+    assert runner_up((0, screened, "amplifier_current_limit"), 2, named) is None    # not right after it
+    assert runner_up((1, screened, "amplifier_current_limit"), 2, named) is None    # only the second name
+    assert runner_up(None, 1, named) is None                                          # nothing named
+    assert runner_up((0, screened[:2] + screened[4:], "amplifier_current_limit"), 1, named) is None
+
+
 def test_the_search_budget_is_work_so_a_busy_machine_searches_the_same(monkeypatch):
     # a budget small enough to end the search early: on an idle machine, and on one whose CPU clock
     # runs 1000 s per reading (a machine busy with other jobs, or very slow), the same candidates
@@ -2405,9 +2423,11 @@ def test_the_search_budget_is_work_so_a_busy_machine_searches_the_same(monkeypat
     clock = iter(range(0, 10 ** 9, 1000))
     monkeypatch.setattr(time, "process_time", lambda: float(next(clock)))
     busy = analyse(raw, time_budget_s=4.0).result
-    # the budget ended the search after one round (no budget: creep and the delay, six rejected)
-    assert [r["why"] for r in idle["rejected"]] == ["time budget reached after 1 round(s): no further candidates searched"]
-    assert idle["final"]["effects"] == ["time_delay"]
+    # the budget ended the search after round 1 (the delay); the drift screened next there was fitted
+    # once beside it (the runner-up), and creep took the drift's place (no budget: creep and the delay)
+    assert [r["why"] for r in idle["rejected"]][-1] == "time budget reached after 2 round(s): no further candidates searched"
+    assert [r["effect"] for r in idle["rejected"]] == ["thermal_drift", "-"]
+    assert idle["final"]["effects"] == ["creep", "time_delay"]
     assert busy["final"]["effects"] == idle["final"]["effects"]
     assert [r["why"] for r in busy["rejected"]] == [r["why"] for r in idle["rejected"]]
     assert busy["final"]["rmse"] == idle["final"]["rmse"]

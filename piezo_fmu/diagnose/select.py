@@ -26,7 +26,7 @@ import math
 from dataclasses import replace
 
 from . import workers
-from .budget import round_stop
+from .budget import round_stop, runner_up
 from .catalogue import CATALOGUE, other_charge, plausible, propose, shape_size
 from .decide import (CONFIDENT, at_bound, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score, told_apart)
@@ -52,15 +52,14 @@ __all__ = ["ACCEPT", "CONFIDENT", "FAST", "confidence", "full_residuals", "noise
 
 SLOW = {"creep", "sensor_leakage", "thermal_drift"}
 FAST = {"time_delay", "amplifier_current_limit", "extra_resonance"}
-# the ordinary items a fast mechanism is screened also without alone (besides without all of them):
-# a delay beside a true first mode, its time taken by a second lag stage (rig-147: 0.71 ms for the
-# 0.60 ms delay beside the 841 Hz mode; without both the mode's ringing was lost and the delay
-# screened worse than the recalibrated model). Not the sampling lags alone: a delay moves both
-# channels, their lags' difference is another thing (without them alone a delay of 0.53 ms was
-# named on rig-149 in the place of a 0.4 ms second stage and the sensor's one-sample lag). The
-# first mode alone: a one-sample delay the recalibration drew as a 131 Hz mode at damping 0.25
-# beside a second stage (rig-d22-117, 494 Hz; the device's own mode at 554 Hz) is the second
-# stage kept and the mode gone (see also :data:`.delays.SPLIT_SHARES`)
+# the ordinary items a fast mechanism is screened also without alone (besides without all of them): a delay
+# beside a true first mode, its time taken by a second lag stage (rig-147: 0.71 ms for the 0.60 ms delay
+# beside the 841 Hz mode; without both the mode's ringing was lost and the delay screened worse than the
+# recalibrated model). Not the sampling lags alone: a delay moves both channels, their lags' difference is
+# another thing (without them alone a delay of 0.53 ms was named on rig-149 in the place of a 0.4 ms second
+# stage and the sensor's one-sample lag). The first mode alone: a one-sample delay the recalibration drew as a
+# 131 Hz mode at damping 0.25 beside a second stage (rig-d22-117, 494 Hz; the device's own mode at 554 Hz) is
+# the second stage kept and the mode gone (see also :data:`.delays.SPLIT_SHARES`)
 ALONE = {"time_delay": ("order", "mode")}
 # a physical candidate that passed in a round a finer loop won is fitted again in the next round
 # whatever its screening: the cells bend to part of its residual (a delay's phase lag is a wider
@@ -303,8 +302,7 @@ def put_in(fitter: Fitter, name, current, struct, p_base, noise, cctx, recal=Non
     if start is None and not alts:
         return None
     sets_cur, _ = residual_sets(fitter, current)
-    return _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cctx, recal,
-                lambda msg: None, 0)
+    return _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cctx, recal, lambda msg: None, 0)
 
 
 def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, revisit=None, recal=None):
@@ -319,26 +317,29 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     sets_cur, _ = residual_sets(fitter, current)
     budget_note, owed = None, []        # owed: physical candidates that passed in a round a finer loop won
     pending = None      # (the other of a slow pair, the state before the first was added: pairs.py)
+    last = only = None  # (the last round that named something, its screening, the name); a runner-up
     for rnd in range(max_rounds):
         due, owed = owed, []
         if (budget_note := round_stop(fitter, rnd)) is not None:
-            step(budget_note)
-            break
+            only, last = (runner_up(last, rnd, struct) if only is None else None), None
+            step(budget_note + (f"; {only} (round {rnd}'s runner-up) fitted once beside its finding" if only else ""))
+            if only is None:
+                break
         # no round stops because the residual looks like noise: a mechanism acting in a few short
         # segments (steps) hardly moves its overall level, and at low sample rates such a misfit
         # fills the upper half of the band the noise is estimated from (rig-180, 465 Hz: after its
         # delay the noise estimate took the current limit's ramps for noise and the search stopped;
         # the limit explains all of that residual, BIC gain 19436); the tests decide, the budget ends
         # creep may add an element and a named loop shape a finer grid of cells (propose says when)
-        names = [n for n in CATALOGUE if n not in struct.effects or n in ("creep", "hysteresis_shape")]
+        names = [only] if only else [n for n in CATALOGUE
+                                     if n not in struct.effects or n in ("creep", "hysteresis_shape")]
         q0 = fitter.quick(current)
         if rnd > 0:
             # peaks of what is left now (the first round's residual may be dominated by something else)
             cctx["peaks"] = residual_peaks(fitter, current)
         screened = []
-        # while other mechanisms are searched a loop shape found before keeps its form (its cells'
-        # weights held in their ratios, one scale free): one column instead of tens; the final fit
-        # frees them again
+        # while other mechanisms are searched a loop shape found before keeps its form (its cells' weights
+        # held in their ratios, one scale free): one column instead of tens; the final fit frees them again
         held = current.hold_cells()
         for i, name in enumerate(names):
             step(f"round {rnd + 1}: screening {name} ({i + 1}/{len(names)})")
@@ -351,7 +352,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             screened.append((q0 - q, name, start, alts))
         screened.sort(key=lambda s: -s[0])
         step(f"round {rnd + 1}: screening gains " + ", ".join(f"{n} {g / max(q0, 1e-300):.3g}" for g, n, _, _ in screened))
-        if (budget_note := round_stop(fitter, rnd, screened)) is not None:
+        if not only and (budget_note := round_stop(fitter, rnd, screened)) is not None:
             step(budget_note)
             break
         tried = []
@@ -491,6 +492,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
         alt = max([a for a, _ in others] + [0.0])
         rival = max(others, key=lambda o: o[0])[1] if others else None
         step(f"round {rnd + 1}: added {best['name']}")
+        last = None if only else (rnd, screened, best["name"])
         if pending is not None and best["name"] == pending[0]:
             pending = None
         prev = next((f for f in findings if f["name"] == best["name"]), None)
@@ -501,8 +503,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             prev.setdefault("more", []).append(best["cmp"])
         else:
             findings.append({"name": best["name"], "cmp": best["cmp"], "before": current,
-                             "after": best["fit"].params, "note": best["note"],
-                             "alt_share": alt, "round": rnd,
+                             "after": best["fit"].params, "note": best["note"], "alt_share": alt, "round": rnd,
                              "alternatives": [t["name"] for t in tried if t is not best],
                              "rival": None if rival is None else {
                                  "effect": rival["name"], "passed": rival["passed"],
@@ -577,8 +578,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                         f["backward"] = cmp
     # (a check of what was found, not a search: it runs when the budget is spent too; rig-d1-049
     # and 161, a creep with a false drift beside it, reached the budget before it was made)
-    current, struct, findings = drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise,
-                                                cctx, step)
+    current, struct, findings = drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise, cctx, step)
     # (a check too: the loop the search ended with, against the nominal operators' classical loops)
     struct, findings, measured = classical_named(fitter, current, struct, findings, rejected, p_base.thresholds,
                                                  noise, recal, step)
