@@ -8,12 +8,17 @@ two-channel recording must be diagnosed in under a minute there). It is counted 
 on how many diagnoses share the cores or on the machine: with a CPU-time budget two diagnoses on
 two cores (the evaluation) ran out sooner than one alone and named less (rig-128: its delay).
 
+The budget is :data:`TIME_BUDGET_S` up to :data:`BUDGET_SAMPLES` samples and grows in proportion
+for a longer record (:func:`work_budget`).
+
 Where the search stops (:func:`round_stop`): no round begins past the budget, and a round after the
-first :data:`FITTED_ROUNDS` whose screening ends past it fits nothing.
+first :data:`FITTED_ROUNDS` whose screening ends past it fits nothing; when it stops before round 2
+and round 1 named something, round 1's runner-up is still fitted once beside it (:func:`runner_up`).
 """
 from __future__ import annotations
 
-__all__ = ["BUDGET_SAMPLES", "FITTED_ROUNDS", "TIME_BUDGET_S", "WORK_PER_S", "round_stop", "runner_up", "work_budget"]
+__all__ = ["BUDGET_SAMPLES", "FITTED_ROUNDS", "TIME_BUDGET_S", "WORK_PER_S", "round_stop", "runner_up",
+           "runner_up_note", "work_budget"]
 
 TIME_BUDGET_S = 40.0     # [s of the reference machine]
 # the samples (time steps over all recordings) the budget is meant for: 20 s at 10 kHz; a longer
@@ -84,3 +89,8 @@ def runner_up(last, rnd, struct):
     _, screened, added = last
     return next((name for gain, name, *_ in screened if gain > 0 and name not in (added, "hysteresis_shape")
                  and name not in struct.effects), None)
+
+
+def runner_up_note(note, name):
+    """The budget's ``note`` for the log, saying that ``name`` (:func:`runner_up`, or None) is fitted."""
+    return note if name is None else note.replace("no further", f"only {name} (round 1's runner-up); no other")

@@ -26,7 +26,7 @@ import math
 from dataclasses import replace
 
 from . import workers
-from .budget import round_stop, runner_up
+from .budget import round_stop, runner_up, runner_up_note
 from .catalogue import CATALOGUE, other_charge, plausible, propose, shape_size
 from .decide import (CONFIDENT, at_bound, closeness, confidence, noise_levels, own_parameters,
                      passes, removed_rms, score, told_apart)
@@ -317,12 +317,12 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     sets_cur, _ = residual_sets(fitter, current)
     budget_note, owed = None, []        # owed: physical candidates that passed in a round a finer loop won
     pending = None      # (the other of a slow pair, the state before the first was added: pairs.py)
-    last = only = None  # (the last round that named something, its screening, the name); a runner-up
+    last = only = None  # (round 1 when it named something, its screening, the name); its runner-up
     for rnd in range(max_rounds):
         due, owed = owed, []
         if (budget_note := round_stop(fitter, rnd)) is not None:
             only, last = (runner_up(last, rnd, struct) if only is None else None), None
-            step(budget_note + (f"; {only} (round {rnd}'s runner-up) fitted once beside its finding" if only else ""))
+            step(runner_up_note(budget_note, only))
             if only is None:
                 break
         # no round stops because the residual looks like noise: a mechanism acting in a few short
