@@ -166,3 +166,28 @@ def test_a_mode_at_its_damping_bound_is_fitted_with_a_second_lag_stage(monkeypat
     rc = res["baseline"]["recalibrated"]
     assert rc["amplifier_order"] == 1 and not rc["first_mode_hz"].get("identified")
     assert res["final"]["rmse"]["x"] > 5 * res["baseline"]["noise"]["x"]
+
+
+def test_the_report_replays_on_the_fit_s_grid_when_the_file_s_times_are_rounded(tmp_path):
+    # times written with 8 decimals at 13.2 kHz: the median step is 7.5758e-05 s for 7.5757576e-05,
+    # and the file's last time is 26399.7 of those steps; the report's replay went to the last time
+    # and came out one sample short of the fit's 26401 (the diagnosis finished, the report failed)
+    import numpy as np
+
+    from piezo_fmu.diagnose import diagnose
+    from piezo_fmu.diagnose.synth import make_case
+
+    case = make_case(3, [], "mid", ["steps"], fs=13200.0, duration=2.0)
+    path = tmp_path / "rounded.csv"
+    cols = case.columns()
+    cols["time"] = np.round(cols["time"], 8)
+    with open(path, "w") as fh:
+        fh.write(",".join(cols) + "\n")
+        np.savetxt(fh, np.column_stack(list(cols.values())), delimiter=",", fmt="%.10g")
+    t = cols["time"]
+    assert round(t[-1] / float(np.median(np.diff(t)))) + 1 < t.size     # the file's grid is short
+    d = diagnose([path], out=tmp_path / "out", time_budget_s=2.0, figures=False)
+    with open(tmp_path / "out" / "fit.csv") as fh:
+        rows = [line for line in fh if line[:1].isdigit() or line[:1] == "-"]
+    assert len(rows) == t.size
+    assert d.result["check"]["simulate_vs_fit_max_abs"] < 1e-6

@@ -43,9 +43,14 @@ def check_outputs(out, force=False):
 
 def replay_model(model, rec):
     """Run ``model`` open loop on the recorded command of ``rec`` (noise off; held over each sample,
-    stepped ``rec.oversample`` times per sample as the fit replayed it): dict x, us at the samples."""
+    stepped ``rec.oversample`` times per sample as the fit replayed it): dict x, us at the samples.
+
+    On the fit's grid (``rec.n`` samples ``rec.dt`` apart), not the file's times: written with 8
+    digits, the times of 13.8 s at 13.2 kHz give a median step 7.5758e-05 s for 7.57576e-05, whose
+    181728.98 steps to the last time replayed one sample short (rig-d32-033: the report failed
+    after the diagnosis)."""
     m, n = rec.oversample, rec.n
-    t = rec.t if m == 1 else np.arange(n * m) * rec.h
+    t = np.arange(n * m) * rec.h
     sig = Signal("table", t=t, values=rec.u if m == 1 else np.repeat(rec.u, m), column="u")
     res = simulate(model, sig, float(t[-1]), step=rec.h, mode="open", noise=False, t0=0.0)
     return {"x": np.asarray(res["x"])[:n * m:m], "us": np.asarray(res["us"])[:n * m:m]}
