@@ -321,7 +321,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
     for rnd in range(max_rounds):
         due, owed = owed, []
         if (budget_note := round_stop(fitter, rnd)) is not None:
-            only, last = (runner_up(last, rnd, struct) if only is None else None), None
+            only, last = (runner_up(fitter, last, rnd, struct) if only is None else None), None
             step(runner_up_note(budget_note, only))
             if only is None:
                 break
