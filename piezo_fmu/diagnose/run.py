@@ -83,9 +83,10 @@ def analyse(raw, model: Model | None = None, say=None, max_rounds=5, time_budget
     (:func:`.recordings.internal_steps`; default one step per sample).
 
     ``time_budget_s``: after the work of this many seconds on the reference machine (per
-    :data:`.budget.BUDGET_SAMPLES` samples for a longer record) no further candidate search is started (what was found stays; ``diagnosis.json`` says so under
-    ``rejected``); ``None`` for no limit. Counted as work (``WORK_PER_S``), not time: the result
-    does not depend on the machine or its load.
+    :data:`.budget.BUDGET_SAMPLES` samples for a longer record) no further candidate search is
+    started (what was found stays; ``diagnosis.json`` says so under ``rejected``); ``None`` for no
+    limit. Counted as work (``WORK_PER_S``), not time: the result does not depend on the machine
+    or its load.
 
     ``threads``: worker threads for the independent evaluations (:mod:`.workers`; default two, or
     the environment's ``PIEZO_FMU_DIAGNOSE_THREADS``); the result does not depend on it."""
