@@ -169,9 +169,9 @@ def test_a_mode_at_its_damping_bound_is_fitted_with_a_second_lag_stage(monkeypat
 
 
 def test_the_report_replays_on_the_fit_s_grid_when_the_file_s_times_are_rounded(tmp_path):
-    # times written with 8 decimals at 13.2 kHz: the median step is 7.5758e-05 s for 7.5757576e-05,
-    # and the file's last time is 26399.7 of those steps; the report's replay went to the last time
-    # and came out one sample short of the fit's 26401 (the diagnosis finished, the report failed)
+    # times written with 8 decimals at 13.2 kHz: the median step is 7.576e-05 s for 7.5757576e-05,
+    # and the file's last time (2 s) is 26399.2 of those steps; the report's replay went to the last
+    # time and came out a sample short of the fit's 26401 (the diagnosis finished, the report failed)
     import numpy as np
 
     from piezo_fmu.diagnose import diagnose
