@@ -19,17 +19,19 @@ from __future__ import annotations
 
 import math
 
-from .catalogue import plausible, propose
+import numpy as np
+
+from .catalogue import MODE_LIGHT, plausible, propose
 from .decide import at_bound, confidence, noise_levels, own_parameters, passes, score
-from .fit import free_names, get_value, strip
+from .fit import Structure, free_names, get_value, strip
 from .recalibrate import ITEM_K, ITEM_PARAMS, MAX_LAG, adopt_mode, drop, mode_at
 from .residuals import ACCEPT, heldout_rmse, residual_sets
 from .stats import compare
 
 __all__ = ["ABSORBED_KEPT", "CREEP_BEFORE_DRIFT", "MODE_EVIDENCE", "ORDINARY_ADOPTIONS", "SHAPE_LAST",
-           "beside_named_mode", "confidences", "creep_before_drift", "creep_for_drift", "delay_or_lag",
-           "drift_both", "drift_or_creep", "ordinary_found", "physics_before_shape", "resonance_or_mode",
-           "sampling_lag_rival", "shape_after_physics"]
+           "beside_named_mode", "confidences", "creep_at_floor", "creep_before_drift", "creep_for_drift",
+           "delay_or_lag", "drift_both", "drift_or_creep", "modes_exchanged", "ordinary_found",
+           "physics_before_shape", "resonance_or_mode", "sampling_lag_rival", "shape_after_physics"]
 
 SHAPE_LAST = 0.8           # a physical mechanism explaining this share of what a finer loop does goes first
 
@@ -394,3 +396,47 @@ def confidences(fitter, findings, absorbed, last_round):
             # the others in, they explain part of the same residual: the forward measure stands;
             # rig-179's false drift beside a creep: BIC 4393 forward, 107 backward.)
             f["confidence"] = max(f["confidence"], confidence(bw, f["name"], alt))
+
+
+def creep_at_floor(name, bounds, p, struct: Structure):
+    """Index of a new creep element whose time constant sits at the lower end of its range when
+    another new element stays (else ``None``): an element that fast draws a lag, a mode or the
+    loop's rate dependence, and the slower ones may be the creep (rig-d8-025: log creep from
+    t0 = 19 ms fitted as 2.6 ms at the floor with gain 0.15 beside 0.50 s with 0.058; one element
+    alone settles at 0.21 s and passes)."""
+    if name != "creep" or len(p.creep) - 1 <= struct.creep_order:
+        return None
+    for b in bounds:
+        n = b["parameter"]
+        if n.startswith("creep_tau") and b["value"] <= b["range"][0] * 1.5:
+            return int(n[9:])
+    return None
+
+
+def modes_exchanged(fitter, fr, dropped, step, rnd):
+    """A further mode fitted heavily damped (beyond ``MODE_LIGHT``) beside a lightly damped first
+    mode may be the same two modes the other way round: the device's own mode damped, the further
+    one ringing (rig-d33-129, displacement pick-off: the device's 278 Hz mode at zeta 0.19 and a
+    548 Hz further mode at 0.007 fitted as a further mode at 279 Hz, 0.19, beside a first mode
+    moved to 548 Hz, and refused as one that only adds phase lag). The fit ``fr`` with the two
+    exchanged and re-fitted is returned when it fits as well (BIC within ``ACCEPT["dbic"]``, the
+    same parameters), else ``fr`` (also when the fit does without the first mode: ``dropped``)."""
+    p = fr.params
+    if p.res is None or "mech_f" not in fitter.ordinary or "mode" in dropped:
+        return fr
+    (f2, z2), (f1, z1) = p.res, p.mode(fitter.dev)
+    lo, hi = fitter.bounds("mech_f")
+    if z2 <= MODE_LIGHT or z1 > MODE_LIGHT or not lo < f2 < hi or f1 > fitter.bounds("res_f")[1]:
+        return fr
+    q = p.copy()
+    q.res = (f1, max(z1, fitter.bounds("res_zeta")[0] * 1.2))
+    q.set_mode(fitter.dev, f=f2, zeta=float(np.clip(z2, *fitter.bounds("mech_zeta", q))))
+    gone = {n for it in dropped for n in ITEM_PARAMS[it]}      # (the ordinary items the fit does without)
+    free = [n for n in free_names(fr.struct, fitter.ordinary) if n not in gone]
+    got = fitter.fit(q, fr.struct, free=free, max_nfev=10, held=True)
+    worse = fitter.n_eff * math.log(max(got.cost, 1e-300) / max(fr.cost, 1e-300))
+    if worse >= ACCEPT["dbic"]:
+        return fr
+    step(f"round {rnd + 1}: the further mode at {f2:.4g} Hz (zeta {z2:.2g}) beside the first mode at {f1:.4g} Hz "
+         f"(zeta {z1:.2g}) fits the other way round as well (BIC {-worse:.1f}): exchanged")
+    return got

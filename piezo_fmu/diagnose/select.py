@@ -41,9 +41,10 @@ from .loopshape import (LOOP_HELDOUT_BETA, LOOP_HELDOUT_Z, REFIT_WORSE, SHAPE_BE
 from .pairs import near_miss, slow_pair
 from .recalibrate import ITEM_K, ITEM_PARAMS, drop, present, without
 from .residuals import ACCEPT, full_residuals, heldout_rmse, residual_peaks, residual_sets
-from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, confidences, creep_before_drift, delay_or_lag, drift_both,
-                     drift_or_creep, ordinary_found, physics_before_shape, resonance_or_mode, shape_after_physics)
-from .starts import swapped_mode
+from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, confidences, creep_at_floor, creep_before_drift, delay_or_lag,
+                     drift_both, drift_or_creep, modes_exchanged, ordinary_found, physics_before_shape,
+                     resonance_or_mode, shape_after_physics)
+from .starts import solved_starts, swapped_mode
 from .stats import compare
 
 __all__ = ["ACCEPT", "CONFIDENT", "FAST", "confidence", "full_residuals", "noise_levels", "put_in",
@@ -216,12 +217,12 @@ def _starts(fitter, name, current, held, struct, cctx, recal):
         a = swapped_mode(fitter, held, struct, cctx)
         if a is not None:
             alts.append((a, []))
-    # the weights re-solved for each proposed dynamics (held weights fitted to other dynamics would
-    # make a good proposal look bad); each start in its own copy: independent, on the two threads
-    # (varpro does not touch the strokes' cache, whose order decides the work counted)
-    if name != "hysteresis_shape":
-        workers.each(lambda x: fitter.varpro(x, struct.with_effect(name, 0, len(x.creep))),
-                    [x for x in [start] + [a for a, _ in alts] if x is not None])
+    # each start's weights re-solved in its own copy, on the two threads (held ones make a good proposal look bad)
+    todo = [x for x in [start] + [a for a, _ in alts] if x is not None]
+    if name == "extra_resonance":
+        solved_starts(fitter, todo, lambda x: struct.with_effect(name, 0, len(x.creep)))
+    elif name != "hysteresis_shape":
+        workers.each(lambda x: fitter.varpro(x, struct.with_effect(name, 0, len(x.creep))), todo)
     return start, alts
 
 
@@ -247,6 +248,7 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
                 fr = fitter.fit(q, s_new, free=free, max_nfev=6, held=True)
         fits.append(_simpler(fitter, name, struct, s_new, fr, recal, step, dropped0))
     fr, dropped = max(fits, key=lambda f: _bic_worth(fitter, f[0], f[1]))
+    fr = modes_exchanged(fitter, fr, dropped, step, rnd) if name == "extra_resonance" else fr
     s_new = fr.struct
     sets_new, _ = residual_sets(fitter, fr.params)
     k = s_new.n_params() - struct.n_params() - sum(ITEM_K[i] for i in dropped)
@@ -261,7 +263,7 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
                      f"held-out beta {v['beta_heldout']:.2f}, z {v['z_heldout']:.1f})"
                      for c, v in cmp["channels"].items())
          + f"; training cost {fitter.cost(current):.5g} -> {fr.cost:.5g}")
-    fast = _creep_at_floor(name, bounds, fr.params, struct)
+    fast = creep_at_floor(name, bounds, fr.params, struct)
     if fast is not None:
         q = fr.params.copy()
         tau = q.creep.pop(fast)[1]
@@ -272,21 +274,6 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
     return {"name": name, "fit": fr, "cmp": cmp, "passed": passed, "why": why,
             "note": ok[1], "struct": s_new, "sets": sets_new, "bounds": bounds, "dropped": dropped,
             "near": not passed and near_miss(cmp, name, ok, bounds)}
-
-
-def _creep_at_floor(name, bounds, p, struct):
-    """Index of a new creep element whose time constant sits at the lower end of its range when
-    another new element stays (else ``None``): an element that fast draws a lag, a mode or the
-    loop's rate dependence, and the slower ones may be the creep (rig-d8-025: log creep from
-    t0 = 19 ms fitted as 2.6 ms at the floor with gain 0.15 beside 0.50 s with 0.058; one element
-    alone settles at 0.21 s and passes)."""
-    if name != "creep" or len(p.creep) - 1 <= struct.creep_order:
-        return None
-    for b in bounds:
-        n = b["parameter"]
-        if n.startswith("creep_tau") and b["value"] <= b["range"][0] * 1.5:
-            return int(n[9:])
-    return None
 
 
 def put_in(fitter: Fitter, name, current, struct, p_base, noise, cctx, recal=None):
