@@ -2223,7 +2223,7 @@ def test_creep_whose_fast_element_settles_at_the_floor_is_fitted_again_without_i
     for c in ("x", "us"):
         assert res["final"]["rmse"][c] < 0.8 * res["baseline"]["rmse"][c]
     # refused as a whole (the rule before), creep is missed
-    monkeypatch.setattr(select, "_creep_at_floor", lambda *a: None)
+    monkeypatch.setattr(select, "creep_at_floor", lambda *a: None)
     assert analyse(raw).result["final"]["effects"] == []
 
 
