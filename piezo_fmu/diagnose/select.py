@@ -217,7 +217,9 @@ def _starts(fitter, name, current, held, struct, cctx, recal):
         a = swapped_mode(fitter, held, struct, cctx)
         if a is not None:
             alts.append((a, []))
-    # each start's weights re-solved in its own copy, on the two threads (held ones make a good proposal look bad)
+    # the weights re-solved for each proposed dynamics (held weights fitted to other dynamics would
+    # make a good proposal look bad); each start in its own copy: independent, on the two threads
+    # (varpro does not touch the strokes' cache, whose order decides the work counted)
     todo = [x for x in [start] + [a for a, _ in alts] if x is not None]
     if name == "extra_resonance":
         solved_starts(fitter, todo, lambda x: struct.with_effect(name, 0, len(x.creep)))
