@@ -1,8 +1,9 @@
 """Where a search starts: ordinary physics fitted while a mechanism was still missing.
 
-The cases come from the recognition study's generator (``diagnose.synth``): the saturation and the
-thresholds' voltage scale are fitted before anything is named, and a large missing mechanism can
-pull them where its own fit cannot start from.
+The cases come from the recognition study's generator (``diagnose.synth``; the last two from the
+independent rig, draw 33): the saturation and the thresholds' voltage scale are fitted before
+anything is named, and a large missing mechanism can pull them where its own fit cannot start from
+(or a further mode's start, re-solved too briefly, from its place).
 """
 import pytest
 
