@@ -117,40 +117,25 @@ def test_a_parameter_no_sample_responds_to_has_no_figure_and_leaves_the_others_t
     assert sensitive(np.zeros((5, 2)), r0[:5]) == [False, False]
 
 
-def test_the_lag_is_searched_again_once_the_first_mode_has_moved(rig_diagnosis):
+def test_the_lag_is_searched_again_once_the_first_mode_has_moved(rig_diagnosis, monkeypatch):
     # rig-d26-094 (fresh draw 26, clean: 4.53 kHz, force pick-off, a 0.27 + 0.10 ms amplifier, a
     # 746 Hz first mode at zeta 0.011). Fitted with the nominal mechanics the lag came out 1.65 ms;
     # the mode recalibrated beside it settled at zeta 0.14, and from there a current limit "binding
     # on 8 samples" took the misfit: named on a clean device (stop 79 and 80 code). With the lag
     # searched again over its range once the mode moved and the ordinary parameters refitted from
     # there, the cost falls to 0.08 of what it was: 0.39 ms, the mode lightly damped, nothing named
-    # (with recalibrate.LAG_AGAIN_RATIO at 0, no search again, the false current limit of before
-    # came back: checked here until stop 89, dropped at stop 90 for the CI's 30 minutes)
+    from piezo_fmu.diagnose import recalibrate
+
     res = rig_diagnosis("rig-d26-094")
     assert res["final"]["effects"] == [], res["findings"]
     rc = res["baseline"]["recalibrated"]
     assert rc["amplifier_tau_s"]["value"] < 0.6e-3
     assert rc["first_mode_zeta"]["value"] < 0.1
-
-
-def test_a_first_mode_the_loop_s_misfit_hid_is_searched_again_once_the_loop_is_in():
-    # rig-d34-085 (fresh draw 34: 1.03 kHz, a Bouc-Wen device with a loop shape, a 323 Hz first mode
-    # at zeta 0.20, displacement pick-off). Beside the loop's misfit no mode screened better; once the
-    # finer loop went into the recalibration (round 1: "an ordinary loop difference") the first mode
-    # was not searched again, a further mode at zeta 0.20 then explained all that was left and was
-    # refused as too damped: nothing named (stop 89 code). And the grid's best two points were the
-    # nominal 15.1 kHz mode with another pick-off, out of the search range (0.85 x the sample rate):
-    # fitted from there the mode stayed at the range's end, the real starts were never fitted
-    from piezo_fmu import rig
-    from piezo_fmu.diagnose.run import analyse
-
-    rec = rig.generate(next(s for s in rig.cases(draw=34) if s.case_id == "rig-d34-085"))
-    truth = rec.truth["params"]
-    d = analyse([{"name": "rig-d34-085", "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}])
-    assert d.result["final"]["effects"] == ["hysteresis_shape"], d.result["final"]["verdict"]
-    f1, z1 = d.p_final.mode(d.search["fitter"].dev)
-    assert abs(math.log(f1 / truth["mechanics.f1"]["value"])) < math.log(1.1)
-    assert abs(z1 - truth["mechanics.zeta1"]["value"]) < 0.05
+    # kept only for a large gain: with the bar at a ratio no fit reaches, the false current limit
+    # of before
+    monkeypatch.setattr(recalibrate, "LAG_AGAIN_RATIO", 0.0)
+    res = rig_diagnosis("rig-d26-094")
+    assert "amplifier_current_limit" in res["final"]["effects"]
 
 
 def test_a_mode_at_its_damping_bound_is_fitted_with_a_second_lag_stage(monkeypatch):

@@ -266,12 +266,9 @@ def _mode(fitter, rc, struct, sat):
         why = "not visible in this recording (no mode frequency improves the fit)"
         return _mode_not_identified(rc, p, why, f_nom, z_nom)
     tried, seen = [], set()
-    f_lo, f_hi = fitter.bounds("mech_f")
     for _, pick, at, f, z in grid:
         key = (pick, at, round(math.log(f), 1))
-        if key in seen or not f_lo <= f <= f_hi:
-            # (a pick-off changed with the nominal mode out of the range is no start for the mode:
-            # fitted from there it stays at the range's end, rig-d34-085 at 1 kHz)
+        if key in seen:
             continue
         seen.add(key)
         q = p.copy()
@@ -282,8 +279,6 @@ def _mode(fitter, rc, struct, sat):
         tried.append(fitter.fit(q, struct, free=free + ["mech_f", "mech_zeta"], max_nfev=10, held=True))
         if len(tried) >= 2:
             break
-    if not tried:
-        return _mode_not_identified(rc, p, "no start for it within its search range", f_nom, z_nom)
     best = min(tried, key=lambda fr: fr.cost)
     gain, _ = _gain(fitter, p, best.params, 2 + (best.params.pick != p.pick))
     edge = _mode_at_range_end(fitter, best.params)

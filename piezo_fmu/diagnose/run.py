@@ -290,15 +290,7 @@ def _analyse(raw, model, say, max_rounds, time_budget_s, replay_rate=None):
             p_base, struct_nom = p_final, struct_final
         elif revisited[0] or struct_base.refined:
             step("re-fitting the recalibrated nominal model with the ordinary physics found since")
-            q = strip(p_from, struct_base, p_base.thresholds)
-            if not struct_base.refined and (len(p_from.thresholds) != len(q.thresholds) or p_from.n_cells):
-                # back on the nominal operators: from their weights and sag, not from zero weights and
-                # the named loop's sag (rig-d34-085: a loop shape named with the first mode found
-                # after the loop; from zeros the refit ended at 4e10 x the nominal model's cost, the
-                # report kept the nominal 15.1 kHz mode as "identified"; from the nominal weights
-                # 0.73 x, the mode at 329 Hz)
-                q.weights, q.y_sat = p_base.weights.copy(), p_base.y_sat
-            fr = fitter.fit(q, struct_base, max_nfev=10)
+            fr = fitter.fit(strip(p_from, struct_base, p_base.thresholds), struct_base, max_nfev=10)
             # a refit that ends far worse than the nominal model it replaces has diverged (rig-025:
             # the final model's first mode had moved onto a further mode; without that mode the refit
             # ended at 4e4 times the training cost, 183 um rms against 0.5): the nominal model stays.

@@ -89,21 +89,16 @@ def coupled(fitter, name, struct, s_new):
     return keep
 
 
-def _refine(fitter, tried_loop, struct, p_base, recal, removed, explained, noise, revisit=None):
+def _refine(fitter, tried_loop, struct, p_base, recal, removed, explained, noise):
     """Take the finer loop of ``tried_loop`` into the recalibration (an ordinary loop difference,
     not named); returns the refined structure and the model re-fitted with it. ``noise`` is taken
-    again from that model, as after a finding (rig-147: the loop's misfit had passed for noise).
-    ``revisit`` (given before any finding): the ordinary items are searched again, as after a first
-    finding: the loop's misfit may have hidden one (rig-d34-085: a 323 Hz first mode, zeta 0.2)."""
+    again from that model, as after a finding (rig-147: the loop's misfit had passed for noise)."""
     struct = struct.refine(shape_size(tried_loop["fit"].params, p_base.thresholds))
     current = fitter.fit(tried_loop["fit"].params, struct, max_nfev=10).params
     trial, refit = heldout_rmse(tried_loop["sets"]), heldout_rmse(residual_sets(fitter, current)[0])
     undone = any(refit[c] > REFIT_WORSE * trial[c] for c in refit)
     if undone:
         current = tried_loop["fit"].params   # the refit moved the loop where the training blocks do not look
-    if revisit is not None and not fitter.out_of_time():
-        again = revisit(current, struct)
-        current = current if again is None else again
     noise.update(noise_levels(fitter, current)[0])
     if recal is not None:
         recal.report["loop"] = {"operators": len(current.thresholds), "kp_cells": current.n_cells,
@@ -403,8 +398,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                      "(not named)")
                 struct, current = _refine(fitter, loop, struct, p_base, recal,
                                           max(removed_rms(v) for v in ch.values()),
-                                          max(v["explained"] for v in ch.values()), noise,
-                                          None if findings else revisit)
+                                          max(v["explained"] for v in ch.values()), noise)
                 sets_cur, _ = residual_sets(fitter, current)
                 continue
             rejected += [{"effect": t["name"], "why": t["why"], **({"at_bound": t["bounds"]} if t["bounds"] else {})}
@@ -465,8 +459,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                     far += f"; beside {', '.join(beside)} it must lie {far_enough:g} x the noise from them"
                 step(f"round {rnd + 1}: the finer loop explains {100 * explained:.0f} % ({removed:.2f} x the "
                      f"noise{far}): an ordinary loop difference, taken into the recalibration (not named)")
-                struct, current = _refine(fitter, best, struct, p_base, recal, removed, explained, noise,
-                                          None if findings else revisit)
+                struct, current = _refine(fitter, best, struct, p_base, recal, removed, explained, noise)
                 sets_cur, _ = residual_sets(fitter, current)
                 continue
             step(f"round {rnd + 1}: the finer loop explains {100 * explained:.0f} % ({removed:.2f} x the "
