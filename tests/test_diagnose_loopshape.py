@@ -384,10 +384,8 @@ def test_a_loop_that_removes_little_of_its_departure_on_a_channel_is_not_named(m
     steps = []
     assert analyse(raw, say=steps.append).result["final"]["effects"] == []
     assert any("held-out z" in m and f"< {loopshape.SHAPE_NOMINAL_HELDOUT_Z:g}" in m for m in steps), steps[-20:]
-    # ... (its z on us is -5.6: the held-out rows take the loop the other way) and without both, a
-    # false loop shape
-    monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_HELDOUT_Z", float("-inf"))
-    assert analyse(raw).result["final"]["effects"] == ["hysteresis_shape"]
+    # (its z on us is -5.6: the held-out rows take the loop the other way; without both rules it was
+    # a false loop shape, a third diagnosis of 29 s dropped at stop 91 for the tests it paid for)
 
 
 def test_a_named_loop_the_nominal_operators_draw_is_an_ordinary_loop_difference(monkeypatch):

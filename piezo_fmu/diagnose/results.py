@@ -461,7 +461,7 @@ def recal_summary(p, dev, dt, recal, fitter=None):
            if p.tau2 > 0 else {}),
         "first_mode_hz": {"value": val(f1), "relative_uncertainty": unc.get("mech_f"),
                           "identified": rep.get("first_mode", {}).get("identified", False),
-                          **({"why": rep["first_mode"]["why"]} if "why" in rep.get("first_mode", {}) else {})},
+                          **{k: v for k, v in rep.get("first_mode", {}).items() if k in ("why", "fitted_with")}},
         "first_mode_zeta": {"value": val(z1, 4), "relative_uncertainty": unc.get("mech_zeta")},
         "sensor_follows": {"value": p.pick, "meaning": {
             "stack": "the stack's blocked force (paper eq. 5)",
