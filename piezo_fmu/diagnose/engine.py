@@ -47,11 +47,11 @@ __all__ = [
     "Params",
     "Recording",
     "amplifier_output",
-    "limited_samples",
     "at_samples",
     "cell_states",
     "chain",
     "device_from_model",
+    "limited_samples",
     "model_from_params",
     "operators",
     "params_from_model",
@@ -91,7 +91,7 @@ def limited_samples(rec: Recording, dev: Device, p: Params) -> float:
     Within an internal step the output ramps while the error to the step's target exceeds
     ``slew * tau`` (:func:`~piezo_fmu.core.plant.amp_step`): at one step per sample a limit whose
     ramps last less than a sample never slews for a whole step, yet shapes every jump it meets
-    (rig-d35-014, 423 Hz: 2 whole steps at the limit, 106 samples' worth of ramps on a chirp)."""
+    (rig-d35-014, 423 Hz: 2 whole steps at the limit, 105.6 samples' worth of ramps on a chirp)."""
     if not p.slew < math.inf:
         return 0.0
     ua = amplifier_output(rec, dev, p)

@@ -146,11 +146,12 @@ def revisit(fitter: Fitter, rc: Recalibration, struct: Structure, step):
         rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 20, held=False).params
         f, z = rc.params.mode(fitter.dev)
         beside = rc.report.get("first_mode", {}).get("fitted_with") == BESIDE_FURTHER
+        top = MODE_BESIDE_NYQUIST * fitter.fs if beside else math.inf
         if "mech_f" in fitter.ordinary and (near_range_end(f, *fitter.bounds("mech_f"))
-                                            or near_range_end(z, *fitter.bounds("mech_zeta", rc.params))
-                                            or (beside and f > MODE_BESIDE_NYQUIST * fitter.fs)):
+                                            or near_range_end(z, *fitter.bounds("mech_zeta", rc.params)) or f > top):
             # settled at the end of its range: not a mode the data see (a lag or a delay passing for one)
-            drop(fitter, rc, "mode", why=f"settled at the end of its search range ({f:.4g} Hz, zeta {z:.3g})")
+            drop(fitter, rc, "mode", why=f"settled at the end of its search range ({f:.4g} Hz, zeta {z:.3g})"
+                 if f <= top else f"found beside the further mode, settled above {top:.4g} Hz ({f:.4g} Hz): a lag")
             rc.params = _fit(fitter, rc.params, struct, fitter.ordinary, 12).params
     return changed
 
