@@ -170,13 +170,17 @@ def test_a_limit_s_ramps_shorter_than_a_sample_are_counted_by_their_time():
     (rec,) = make_recordings([{"name": "r", "time": t, "u": u, "x": u, "us": u}])
     p.tau, p.tau2, p.delay, p.slew = 1e-4, 0.0, 0.0, 1e5           # [s], [s], [s], [V/s]
     per_jump = (40.0 - p.slew * p.tau) / p.slew * fs               # [samples]
-    assert limited_samples(rec, dev, p) == pytest.approx((jumps - 1) * per_jump, rel=1e-6)
+    whole, ramps = limited_samples(rec, dev, p)
+    assert whole == 0 and ramps == pytest.approx((jumps - 1) * per_jump, rel=1e-6)
     fine = dataclasses.replace(rec, oversample=8)
-    assert limited_samples(fine, dev, p) == pytest.approx((jumps - 1) * per_jump, rel=1e-6)
+    assert limited_samples(fine, dev, p)[1] == pytest.approx((jumps - 1) * per_jump, rel=1e-6)
     p.slew = 3e5                                                   # slew * tau = 30 V: 10 V to ramp
-    assert limited_samples(rec, dev, p) == pytest.approx((jumps - 1) * 10.0 / 3e5 * fs, rel=1e-6)
+    assert limited_samples(rec, dev, p)[1] == pytest.approx((jumps - 1) * 10.0 / 3e5 * fs, rel=1e-6)
+    p.slew = 2e3                                                   # 19.9 ms ramps: 7 whole samples
+    whole, ramps = limited_samples(rec, dev, p)
+    assert whole == (jumps - 1) * 7 and ramps == pytest.approx((jumps - 1) * (40.0 - 0.2) / 2e3 * fs, rel=1e-6)
     p.slew = math.inf
-    assert limited_samples(rec, dev, p) == 0.0
+    assert limited_samples(rec, dev, p) == (0, 0.0)
 
 
 def test_a_current_limit_whose_ramps_are_shorter_than_a_sample_is_named(rig_diagnosis, monkeypatch):

@@ -461,18 +461,13 @@ def plausible(name, fitter: Fitter, p_before, p_after, cmp, ctx, struct: Structu
                            "in the data")
         return True, ""
     if name == "amplifier_current_limit":
-        slew = p_after.slew
-        limited = 0
-        for r in fitter.recs:
-            ua = amplifier_output(r, fitter.dev, p_after)
-            # internal steps at the limit, counted in samples
-            limited += int(np.count_nonzero(np.abs(np.diff(ua)) >= 0.999 * slew * r.h)) // r.oversample
+        # internal steps at the limit, counted in samples, and the time of its ramps
+        counts = [limited_samples(r, fitter.dev, p_after) for r in fitter.recs]
+        limited, within = sum(w for w, _ in counts), int(sum(t for _, t in counts))
         ramps = ""
-        if limited < 3 and all(v["explained"] >= LIMIT_RAMPS_EXPLAINED for v in ch.values()):
+        if limited < 3 <= within and all(v["explained"] >= LIMIT_RAMPS_EXPLAINED for v in ch.values()):
             # ramps shorter than a step, counted by their time (LIMIT_RAMPS_EXPLAINED)
-            within = int(sum(limited_samples(r, fitter.dev, p_after) for r in fitter.recs))
-            if within >= 3:
-                limited, ramps = within, " (its ramps within the steps, in samples' worth)"
+            limited, ramps = within, " (its ramps within the steps, in samples' worth)"
         if limited < 3 and not (limited >= 1 and all(
                 v["explained"] >= LIMIT_BRIEF_EXPLAINED and v["z_heldout"] >= 3.0
                 and LIMIT_BRIEF_BETA[0] <= v["beta_heldout"] <= LIMIT_BRIEF_BETA[1] for v in ch.values())):

@@ -85,23 +85,25 @@ def amplifier_output(rec: Recording, dev: Device, p: Params) -> np.ndarray:
     return amp_run(u, nd, dev.k_amp, p.tau, p.slew, dev.u_min, dev.u_max, rec.h, float(p.tau2), out)
 
 
-def limited_samples(rec: Recording, dev: Device, p: Params) -> float:
-    """Time the amplifier spends at its current limit (slewing at ``p.slew``), in samples.
+def limited_samples(rec: Recording, dev: Device, p: Params):
+    """How long the amplifier slews at its current limit ``p.slew``: ``(whole, ramps)``, the internal
+    steps it slews from end to end, counted in whole samples, and the time of every ramp, in samples.
 
     Within an internal step the output ramps while the error to the step's target exceeds
     ``slew * tau`` (:func:`~piezo_fmu.core.plant.amp_step`): at one step per sample a limit whose
     ramps last less than a sample never slews for a whole step, yet shapes every jump it meets
     (rig-d35-014, 423 Hz: 2 whole steps at the limit, 105.6 samples' worth of ramps on a chirp)."""
     if not p.slew < math.inf:
-        return 0.0
+        return 0, 0.0
     ua = amplifier_output(rec, dev, p)
+    whole = int(np.count_nonzero(np.abs(np.diff(ua)) >= 0.999 * p.slew * rec.h)) // rec.oversample
     u = rec.u if rec.oversample == 1 else np.repeat(rec.u, rec.oversample)
     nd = int(round(p.delay / rec.h)) if p.delay > 0 else 0
     # each step's target: the same stages with an output stage that follows at once
     target = kernels()[0](u, nd, dev.k_amp, 1e-9 * rec.h, math.inf, dev.u_min, dev.u_max, rec.h,
                           float(p.tau2), np.empty(u.size))
     ramp = np.clip((np.abs(target[1:] - ua[:-1]) - p.slew * p.tau) / p.slew, 0.0, rec.h)
-    return float(ramp.sum()) / (rec.h * rec.oversample)
+    return whole, float(ramp.sum()) / (rec.h * rec.oversample)
 
 
 def initial_state(ua0: float, p: Params) -> np.ndarray:
