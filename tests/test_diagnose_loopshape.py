@@ -341,6 +341,31 @@ def test_a_loop_far_from_the_nominal_operators_at_the_search_end_with_weak_held_
     assert res["final"]["effects"] == [] and not [c for c in res["candidates"] if c["effect"] == "hysteresis_shape"]
 
 
+def test_a_loop_alone_is_judged_on_the_held_out_evidence_of_the_channels_it_moves(monkeypatch):
+    # rig-d36-039 (278 Hz; a PI device on other thresholds, its loop shape alone): the loop the
+    # search ends with lies 4.07 noise rms from every classical loop of the nominal operators on x and
+    # 0.31 on us, where it has little to show; against its classical refit the held-out z is 27 on x
+    # and 8.4 on us. Nothing else is named: the held-out bar counts on x alone, and the loop is named at
+    # the cap of its class. Counted on every channel (the rule before stop 92) it was a candidate at
+    # the precision of weak loops
+    from piezo_fmu.diagnose import loopshape
+    from piezo_fmu.diagnose.run import analyse
+
+    rec, raw = _rig("rig-d36-039")
+    assert rec.truth["mechanisms"] == ["hysteresis_shape"]
+    steps = []
+    res = analyse(raw, say=steps.append).result
+    assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
+    assert res["findings"][0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_RIGHT, abs=1e-3)
+    counted = [m for m in steps if "held-out evidence counted on" in m]
+    assert counted and "hysteresis_shape: held-out evidence counted on x (us: its loop departs 0.3" in counted[0], steps
+    monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_SEEN", float("inf"))
+    res = analyse(raw).result
+    assert res["final"]["effects"] == [], res["final"]["verdict"]
+    shape = [c for c in res["candidates"] if c["effect"] == "hysteresis_shape"]
+    assert shape and shape[0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_WEAK_RIGHT, abs=1e-3)
+
+
 def test_a_loop_that_drew_ordinary_physics_is_not_named_when_its_classical_refit_fits():
     # rig-d10-053 (354 Hz; a Bouc-Wen stack with sensor leakage, no loop shape): the final loop has
     # weights of both signs (12.2, -1.3, -10.8, ...) and lies 18.8 noise rms from every classical
@@ -459,21 +484,32 @@ def test_a_loop_found_at_the_search_end_is_as_confident_as_the_lower_end_of_its_
 
 def test_a_loop_at_the_search_end_without_a_held_out_z_is_a_candidate(monkeypatch):
     # the held-out bar reads a z of nan (no held-out evidence, :func:`.stats.compare` leaves such a
-    # channel out of its total) as below it; a z at the bar on every channel is named at the cap
+    # channel out of its total) as below it; a z at the bar on every channel is named at the cap. A
+    # channel where the loop departs less than SHAPE_NOMINAL_SEEN from the classical loops is not
+    # counted when nothing else is named (and is, beside a named mechanism, or when no channel is seen)
     from piezo_fmu.diagnose import loopshape
     from piezo_fmu.diagnose.fit import Structure
 
-    def shape(zs):
-        return {"name": "hysteresis_shape", "confidence": 0.97,
+    def shape(zs, departs):
+        return {"name": "hysteresis_shape", "confidence": 0.97, "departs": departs,
                 "cmp": {"channels": {c: {"z_heldout": z} for c, z in zs.items()}}}
 
-    for zs, named in (({"x": float("nan"), "us": 40.0}, False), ({"x": 3.0}, False),
-                      ({"x": loopshape.SHAPE_NOMINAL_HELDOUT_Z, "us": 40.0}, True)):
-        monkeypatch.setattr(loopshape, "nominal_shape", lambda *a, zs=zs: shape(zs))
+    seen, quiet = 1.01 * loopshape.SHAPE_NOMINAL_SEEN, 0.99 * loopshape.SHAPE_NOMINAL_SEEN
+    creep = [{"name": "creep", "confidence": 0.99}]
+    for zs, departs, beside, named in (
+            ({"x": float("nan"), "us": 40.0}, {"x": seen, "us": seen}, [], False),
+            ({"x": 3.0}, {"x": seen}, [], False),
+            ({"x": loopshape.SHAPE_NOMINAL_HELDOUT_Z, "us": 40.0}, {"x": seen, "us": seen}, [], True),
+            ({"x": 40.0, "us": 3.0}, {"x": seen, "us": quiet}, [], True),
+            ({"x": 40.0, "us": 3.0}, {"x": seen, "us": quiet}, creep, False),
+            ({"x": 40.0, "us": 3.0}, {"x": quiet, "us": quiet}, [], False),
+            ({"x": 40.0, "us": float("nan")}, {"x": seen, "us": quiet}, [], True)):
+        monkeypatch.setattr(loopshape, "nominal_shape", lambda *a, zs=zs, d=departs: shape(zs, d))
         steps = []
         struct = Structure()
-        s2, strong, weak = loopshape.shape_from_nominal(None, None, struct, [], [], [], None, {}, None,
+        s2, strong, weak = loopshape.shape_from_nominal(None, None, struct, list(beside), [], [], None, {}, None,
                                                         steps.append)
+        strong = [f for f in strong if f["name"] == "hysteresis_shape"]
         if named:
             assert not weak and strong[0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_RIGHT)
             assert s2.effects == ("hysteresis_shape",)
