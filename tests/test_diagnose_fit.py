@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from piezo_fmu.diagnose import fit
-from piezo_fmu.diagnose.engine import device_from_model, params_from_model
+from piezo_fmu.diagnose.engine import device_from_model, params_from_model, predict
 from piezo_fmu.diagnose.fit import Fitter
 from piezo_fmu.diagnose.recordings import make_recordings
 from piezo_fmu.model import load_model
@@ -192,3 +192,26 @@ def test_costs_with_the_weights_re_solved_are_varpros_one_after_another():
     # the weights held cost more where the dynamics changed (the point of re-solving them)
     held = fitter_a.quick_many(other[:1])
     assert held[0] > seq[1]
+
+
+def test_a_current_limit_far_slower_than_the_commands_steps_is_within_the_search_range():
+    # rig-d36-100 (19.7 kHz, one-sample steps of 3.8 MV/s at the stack): the device's 207 V/s limit,
+    # explaining 0.87 of x, was refused at the floor of 1e-3 x that rate (3818 V/s). The floor now
+    # reaches the rate that crosses the recorded span once in the record: a limit of 100 V/s on
+    # 40 V steps at 20 kHz (a floor of 800 V/s before) is fitted from 2 kV/s to where it lies
+    fs = 20000.0                                                    # [Hz]
+    t = np.arange(int(2 * fs)) / fs                                 # [s]
+    model = load_model()
+    dev, p = device_from_model(model), params_from_model(model, 1 / fs)
+    u = np.where((t * 2).astype(int) % 2 == 1, 40.0 / dev.k_amp, 0.0)      # [V]: 40 V at the stack, 0.5 s holds
+    p.slew = 100.0                                                  # [V/s]
+    (rec,) = make_recordings([{"name": "r", "time": t, "u": u, "x": u, "us": u}])
+    truth = predict(rec, dev, p)
+    recs = make_recordings([{"name": "r", "time": t, "u": u, "x": truth["x"], "us": truth["us"]}])
+    f = Fitter(recs, dev, {"x": 1.0, "us": 1.0})
+    lo, hi = f.bounds("slew")
+    assert lo == pytest.approx(40.0 / 2.0) and 1e-3 * f.max_rate() > 5 * 100.0 and hi == 20 * f.max_rate()
+    q = p.copy()
+    q.slew = 2000.0
+    got = f.fit(q, fit.Structure(effects=("amplifier_current_limit",)), free=["slew"], max_nfev=30).params
+    assert got.slew == pytest.approx(100.0, rel=0.05)
