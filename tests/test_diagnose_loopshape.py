@@ -341,7 +341,7 @@ def test_a_loop_far_from_the_nominal_operators_at_the_search_end_with_weak_held_
     assert res["final"]["effects"] == [] and not [c for c in res["candidates"] if c["effect"] == "hysteresis_shape"]
 
 
-def test_a_loop_alone_is_judged_on_the_held_out_evidence_of_the_channels_it_moves(monkeypatch):
+def test_a_loop_alone_is_judged_on_the_held_out_evidence_of_the_channels_it_is_seen_on(monkeypatch):
     # rig-d36-039 (278 Hz; a PI device on other thresholds, its loop shape alone): the loop the
     # search ends with lies 4.07 noise rms from every classical loop of the nominal operators on x and
     # 0.31 on us, where it has little to show; against its classical refit the held-out z is 27 on x
