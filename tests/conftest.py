@@ -10,6 +10,37 @@ ROOT = Path(__file__).resolve().parents[1]
 SYSTEM_FMUS = ("Actuator", "Sensor", "Compensator")
 
 
+RULES_BEFORE = "--rules-before"
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        RULES_BEFORE, action="store_true",
+        help="also diagnose each regression case of the diagnose tests with its rule switched off (the rule "
+             "before), which checks that the case still needs the rule (about 20 more diagnoses, 10-15 min "
+             "on 2 cores). Run it at every change of a rule; the default run checks the rules themselves.")
+
+
+@pytest.fixture
+def rules_before(request):
+    """True with ``pytest --rules-before``: the test then also diagnoses its case with the rule switched
+    off and checks the outcome of before (the case still needs the rule). The default run stops there
+    (the terminal summary counts such tests): each such diagnosis costs 10-40 s, and together they
+    took the suite past CI's 30 minutes (stop 92)."""
+    on = bool(request.config.getoption(RULES_BEFORE))
+    request.node.user_properties.append(("rules_before", on))
+    return on
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """How many tests checked their rule without the rule before (``--rules-before``)."""
+    left = [r for r in terminalreporter.stats.get("passed", [])
+            if getattr(r, "when", "") == "call" and ("rules_before", False) in getattr(r, "user_properties", ())]
+    if left:
+        terminalreporter.write_line(f"{len(left)} diagnose tests checked their rule but not that their case still "
+                                    f"needs it: `pytest {RULES_BEFORE}` does")
+
+
 def pytest_configure(config):
     """On a pytest-xdist worker when the workers fill the cores: diagnose on one thread.
 

@@ -98,7 +98,7 @@ def _synth(seed):
     return case, [{"name": f"synth-{seed}", "time": case.t, "u": case.u, "x": case.x, "us": case.us}]
 
 
-def test_a_loop_the_nominal_operators_cannot_draw_is_named(monkeypatch):
+def test_a_loop_the_nominal_operators_cannot_draw_is_named(monkeypatch, rules_before):
     # synth-1046: two more play operators' worth of loop between the nominal thresholds. The
     # finer loop explains all the structured residual but removes 2.75 noise rms (under the 3 a
     # name took alone) and its loop is 1.3 from the classical loops (it is one); it lies 2.75
@@ -114,6 +114,8 @@ def test_a_loop_the_nominal_operators_cannot_draw_is_named(monkeypatch):
     assert any("further from the nominal operators' loops" in m for m in steps), steps
     from piezo_fmu.diagnose import loopshape
     assert res["findings"][0]["confidence"] > loopshape.SHAPE_NOMINAL_RIGHT + 0.05, res["findings"]
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     # without that measure (the rule before) found only when the search ends (its loop lies 4.7
     # noise rms from every classical loop of the nominal operators, at any scale), as confident as
     # such findings were right on the fresh draws ...
@@ -128,7 +130,7 @@ def test_a_loop_the_nominal_operators_cannot_draw_is_named(monkeypatch):
     assert res["final"]["effects"] == [] and res["candidates"] == []
 
 
-def test_a_loop_near_the_classical_and_the_nominal_ones_is_not_named_on_its_removal(monkeypatch):
+def test_a_loop_near_the_classical_and_the_nominal_ones_is_not_named_on_its_removal(monkeypatch, rules_before):
     # rig-138 (927 Hz; a current limit and a 54 Hz mode, no loop shape): in its third round a finer loop
     # removes 3.1 noise rms, 98 % of what is left, enough for a name on removal alone, but lies
     # 0.8 from the classical loops and 1.7 further from the nominal operators' loops: ordinary
@@ -139,6 +141,8 @@ def test_a_loop_near_the_classical_and_the_nominal_ones_is_not_named_on_its_remo
     truth = sorted(rec.truth["mechanisms"])
     assert truth == ["amplifier_current_limit", "extra_resonance"]
     assert sorted(analyse(raw).result["final"]["effects"]) == truth
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     # named on its removal alone (the rule before, also in the backward check, which measures the
     # loop again beside the mechanisms named with it): a false loop shape
     monkeypatch.setattr(select, "SHAPE_BEYOND_NOMINAL", -float("inf"))
@@ -160,7 +164,7 @@ def _rig(case_id):
     return rec, [{"name": case_id, "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
 
 
-def test_a_switching_band_the_recalibration_bent_in_is_named(monkeypatch, spy):
+def test_a_switching_band_the_recalibration_bent_in_is_named(monkeypatch, spy, rules_before):
     # rig-108 (533 Hz): a PI device on other thresholds with a band of domains switching at fixed
     # voltages. The recalibrated PI (partial sums of its weights positive, one weight negative) bends
     # part of the band in; the finer loop then removes 2.4 noise rms more, under the 3 a name took
@@ -174,6 +178,8 @@ def test_a_switching_band_the_recalibration_bent_in_is_named(monkeypatch, spy):
     res = analyse(raw).result
     assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
     assert len(seen) == 1 and max(seen[0].values()) >= select.SHAPE_BEYOND
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     # without the measures (the rule before) the same loop is an ordinary difference
     # (and without the measure of the search's end: its loop lies far from the nominal operators')
     from piezo_fmu.diagnose import loopshape
@@ -184,7 +190,7 @@ def test_a_switching_band_the_recalibration_bent_in_is_named(monkeypatch, spy):
     assert analyse(raw).result["final"]["effects"] == []
 
 
-def test_a_loop_far_from_every_classical_one_is_named_beside_other_misfit(monkeypatch):
+def test_a_loop_far_from_every_classical_one_is_named_beside_other_misfit(monkeypatch, rules_before):
     # rig-169: a KP device whose loop widens around 57 V (level_width). The finer loop removes
     # 2.1 noise rms but explains only 59 % of the structured residual (the rest: the device's own
     # family, 1.4 noise rms from the best nine-operator PI); its loop lies 4.7 noise rms from every
@@ -198,6 +204,8 @@ def test_a_loop_far_from_every_classical_one_is_named_beside_other_misfit(monkey
     res = analyse(raw, say=steps.append).result
     assert res["final"]["effects"] == ["hysteresis_shape"], res["final"]["verdict"]
     assert any("other misfit stays beside it" in m for m in steps), steps
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     # asked for 70 % of the residual (the rule before): an ordinary difference, nothing named
     # (and without the measure of the search's end: its loop lies far from the nominal operators')
     from piezo_fmu.diagnose import loopshape
@@ -226,7 +234,7 @@ def test_a_loop_with_other_misfit_beside_it_waits_for_the_physics_that_passed():
     assert 40 <= float(loop[0].split("explains ")[1].split(" %")[0]) <= 50, loop
 
 
-def test_a_loop_of_another_family_is_not_named_on_its_distance_from_the_nominal_operators(monkeypatch):
+def test_a_loop_of_another_family_is_not_named_on_its_distance_from_the_nominal_operators(monkeypatch, rules_before):
     # rig-d7-091 (925 Hz; a clean Bouc-Wen stack): a finer loop removes 3.0 noise rms and lies 2.7
     # further from every PI on the nominal thresholds than the recalibrated loop, but 0.35 from the
     # classical loops, and explains 93 % of the structured residual: the finer grid does not draw
@@ -240,6 +248,8 @@ def test_a_loop_of_another_family_is_not_named_on_its_distance_from_the_nominal_
     res = analyse(raw, say=steps.append).result
     assert res["final"]["effects"] == [], res["findings"]
     assert any("a loop of another family" in m for m in steps), steps
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     # named on that distance alone (the rule before): a false loop shape on a clean device
     monkeypatch.setattr(select, "SHAPE_FURTHER_EXPLAINED", 0.0)
     # (then the search's end finds it a loop the nominal operators draw, and does not name it ...)
@@ -306,7 +316,7 @@ def test_the_distance_from_the_nominal_operators_is_taken_at_their_best_voltage_
 
 
 def test_a_loop_far_from_the_nominal_operators_at_the_search_end_with_weak_held_out_evidence_is_a_candidate(
-        monkeypatch):
+        monkeypatch, rules_before):
     # rig-d10-030 (1.16 kHz): a KP device with a band of switching domains. The recalibrated PI
     # (free-signed weights, thresholds at 0.57 of the stroke's voltage span) draws most of it; the
     # finer loop removes 1.4 noise rms more and is taken in as an ordinary loop difference. The loop
@@ -328,6 +338,8 @@ def test_a_loop_far_from_the_nominal_operators_at_the_search_end_with_weak_held_
     assert any("held-out z" in m and f"< {loopshape.SHAPE_NOMINAL_HELDOUT_Z:g}" in m for m in steps), steps[-20:]
     shape = [c for c in res["candidates"] if c["effect"] == "hysteresis_shape"]
     assert shape and shape[0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_WEAK_RIGHT, abs=1e-3)
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     # without the held-out bar it is named, at most at the cap of the class
     monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_HELDOUT_Z", float("-inf"))
     res = analyse(raw).result
@@ -341,7 +353,7 @@ def test_a_loop_far_from_the_nominal_operators_at_the_search_end_with_weak_held_
     assert res["final"]["effects"] == [] and not [c for c in res["candidates"] if c["effect"] == "hysteresis_shape"]
 
 
-def test_a_loop_alone_is_judged_on_the_held_out_evidence_of_the_channels_it_is_seen_on(monkeypatch):
+def test_a_loop_alone_is_judged_on_the_held_out_evidence_of_the_channels_it_is_seen_on(monkeypatch, rules_before):
     # rig-d36-039 (278 Hz; a PI device on other thresholds, its loop shape alone): the loop the
     # search ends with lies 4.07 noise rms from every classical loop of the nominal operators on x and
     # 0.31 on us, where it has little to show; against its classical refit the held-out z is 27 on x
@@ -359,6 +371,8 @@ def test_a_loop_alone_is_judged_on_the_held_out_evidence_of_the_channels_it_is_s
     assert res["findings"][0]["confidence"] == pytest.approx(loopshape.SHAPE_NOMINAL_RIGHT, abs=1e-3)
     counted = [m for m in steps if "held-out evidence counted on" in m]
     assert counted and "hysteresis_shape: held-out evidence counted on x (us: its loop departs 0.3" in counted[0], steps
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_SEEN", float("inf"))
     res = analyse(raw).result
     assert res["final"]["effects"] == [], res["final"]["verdict"]
@@ -383,7 +397,7 @@ def test_a_loop_that_drew_ordinary_physics_is_not_named_when_its_classical_refit
                for r in res["rejected"]), res["rejected"]
 
 
-def test_a_loop_that_removes_little_of_its_departure_on_a_channel_is_not_named(monkeypatch):
+def test_a_loop_that_removes_little_of_its_departure_on_a_channel_is_not_named(monkeypatch, rules_before):
     # rig-d10-133 (632 Hz; a clean KP device whose 511 Hz first mode lies above the Nyquist frequency,
     # 89 noise rms in the sensor channel that no model here draws): the final loop lies 2.65 noise rms
     # from the classical ones on x and 1.06 on us, and its classical refit is refused on x, but on us
@@ -403,6 +417,8 @@ def test_a_loop_that_removes_little_of_its_departure_on_a_channel_is_not_named(m
     res = analyse(raw, say=steps.append).result
     assert res["final"]["effects"] == [], res["final"]["verdict"]
     assert any("on us it removes 0.00 x the noise" in m for m in steps), steps
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     # without the rule (and the end's finding trusted as named) the held-out bar keeps it out ...
     monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_SHOWN", 0.0)
     monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_RIGHT", 1.0)
@@ -413,7 +429,7 @@ def test_a_loop_that_removes_little_of_its_departure_on_a_channel_is_not_named(m
     # a false loop shape, a third diagnosis of 29 s dropped at stop 91 for the tests it paid for)
 
 
-def test_a_named_loop_the_nominal_operators_draw_is_an_ordinary_loop_difference(monkeypatch):
+def test_a_named_loop_the_nominal_operators_draw_is_an_ordinary_loop_difference(monkeypatch, rules_before):
     # rig-d10-114 (1.59 kHz; leakage and a delay on a PI device of its own thresholds, no loop shape): a
     # finer loop is named in round 2 (it explains 98 % of what is left beside the leakage), the delay
     # after it; with both in, the loop lies 0.87 noise rms from a classical loop of the nominal
@@ -434,12 +450,14 @@ def test_a_named_loop_the_nominal_operators_draw_is_an_ordinary_loop_difference(
     assert sorted(res["final"]["effects"]) == ["sensor_leakage", "time_delay"], res["final"]["verdict"]
     assert any(r["effect"] == "hysteresis_shape" and "a loop they draw" in r["why"] for r in res["rejected"])
     assert res["baseline"]["recalibrated"]["loop"]["refined"]
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     monkeypatch.setattr(loopshape, "SHAPE_NOMINAL_FAR", 0.0)
     monkeypatch.setattr(loopshape, "SHAPE_NAMED_NEAR", 0.0)
     assert "hysteresis_shape" in analyse(raw).result["final"]["effects"]
 
 
-def test_a_named_loop_between_the_two_bars_stays_named(monkeypatch):
+def test_a_named_loop_between_the_two_bars_stays_named(monkeypatch, rules_before):
     # synth-1062 (sensor leakage and two more operators' worth of loop, on the model's own structure):
     # the rounds name the loop shape beside the leakage; with both in, the loop lies 1.9 noise rms from
     # the nominal operators' classical loops: above the bar that undoes a named loop, under the one a
@@ -455,6 +473,8 @@ def test_a_named_loop_between_the_two_bars_stays_named(monkeypatch):
     named = [m for m in steps if "the named loop lies" in m]
     far = float(named[0].split("lies ")[1].split(" x")[0])
     assert loopshape.SHAPE_NAMED_NEAR <= far < loopshape.SHAPE_NOMINAL_FAR, named
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     # undone at the other bar: the leakage alone
     monkeypatch.setattr(loopshape, "SHAPE_NAMED_NEAR", loopshape.SHAPE_NOMINAL_FAR)
     assert analyse(raw).result["final"]["effects"] == ["sensor_leakage"]
@@ -518,7 +538,7 @@ def test_a_loop_at_the_search_end_without_a_held_out_z_is_a_candidate(monkeypatc
             assert s2 is struct and any("held-out z" in m for m in steps), steps
 
 
-def test_cells_whose_weights_cancel_on_the_training_rows_are_held_by_the_ridge(monkeypatch):
+def test_cells_whose_weights_cancel_on_the_training_rows_are_held_by_the_ridge(monkeypatch, rules_before):
     # rig-d22-154 (the independent rig at 267 Hz): a loop shape beside a sensor leakage. The finer
     # loop improves every held-out block about 3 x but one, whose step from 23.9 to 51.5 V no
     # training row repeats: with the cells' ridge at 1e-9 the weights that cancel on the training
@@ -535,5 +555,7 @@ def test_cells_whose_weights_cancel_on_the_training_rows_are_held_by_the_ridge(m
     res = analyse(raw).result
     assert sorted(res["final"]["effects"]) == ["hysteresis_shape", "sensor_leakage"], res["final"]["verdict"]
     assert res["final"]["rmse"]["x"] < 0.5 * res["baseline"]["rmse"]["x"]        # [um]
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
     monkeypatch.setattr(varpro, "CELL_RIDGE", 1e-9)
     assert analyse(raw).result["final"]["effects"] == ["sensor_leakage"]

@@ -152,7 +152,7 @@ def operators(ua: np.ndarray, p: Params) -> np.ndarray:
     return z
 
 
-@lru_cache(maxsize=256)
+@lru_cache(maxsize=8192)
 def foh_filter(num, den, h, hold=None):
     """``(b, a)`` of the exact discretisation of ``num/den`` at step ``h``: the input interpolated
     linearly over the step, or with ``hold`` [s] moving along a first-order lag of that time
@@ -190,7 +190,7 @@ def _padd(a, b):
     return np.pad(a, (0, n - a.size)) + np.pad(b, (0, n - b.size))
 
 
-@lru_cache(maxsize=512)
+@lru_cache(maxsize=8192)
 def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output", hold=None):
     """Second-order sections of the whole linear chain after the hysteresis for one channel:
     ``(front, sos, gain, dc)``, ``dc`` its static gain before the sensor's leakage (from the
@@ -250,7 +250,13 @@ def _chain_sos(channel, creep, res, tau_leak, mech, pick, h, res_at="output", ho
 
 def _sos(b, a):
     """Second-order sections of ``b/a``: written directly up to order 2 (most blocks), else by
-    :func:`scipy.signal.tf2sos` (which pairs poles and zeros, at a thousand times the cost)."""
+    :func:`scipy.signal.tf2sos` (which pairs poles and zeros, at a thousand times the cost), kept
+    for the next chain with the same block (read only).
+
+    A chain is built afresh whenever one of its blocks changes (a Jacobian column, a grid point),
+    but the blocks it leaves alone give the same sections: on a short creep record (rig-d8-025,
+    profiled) ``tf2sos`` took 3.8 of 18.6 s in 3 508 calls, kept 2.3 s in 2 018 (the same numbers).
+    A copy is returned: the compiled filter is specialised for writable arrays."""
     b = np.asarray(b, float)
     a = np.asarray(a, float)
     b = np.pad(b, (max(0, a.size - b.size), 0))
@@ -259,7 +265,15 @@ def _sos(b, a):
         row[:b.size] = b / a[0]
         row[3:3 + a.size] = a / a[0]
         return row[None, :]
-    return tf2sos(b, a)
+    return _sections(b.tobytes(), a.tobytes()).copy()
+
+
+@lru_cache(maxsize=8192)
+def _sections(b, a):
+    """:func:`scipy.signal.tf2sos` of the coefficients ``b``, ``a`` (float64 bytes), read only."""
+    sos = tf2sos(np.frombuffer(b), np.frombuffer(a))
+    sos.flags.writeable = False
+    return sos
 
 
 def chain(cols, channel, dev: Device, p: Params, h):
