@@ -406,7 +406,7 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
             break
         best = max((t for t in tried if t["passed"]), key=lambda t: score(t["cmp"], t["name"]))
         best = physics_before_shape(best, tried, step, rnd)
-        best = creep_before_drift(best, tried, struct, step, rnd)
+        best = creep_before_drift(fitter, best, tried, struct, step, rnd)
         owed = [t["name"] for t in tried if t["passed"] and best["name"] == "hysteresis_shape" != t["name"]]
         as_mode = resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd)
         as_lag = None if as_mode is not None else delay_or_lag(fitter, best, struct, p_base, recal, step, rnd)
@@ -567,7 +567,8 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                         f["backward"] = cmp
     # (a check of what was found, not a search: it runs when the budget is spent too; rig-d1-049
     # and 161, a creep with a false drift beside it, reached the budget before it was made)
-    current, struct, findings = drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise, cctx, step)
+    current, struct, findings = drift_or_creep(fitter, current, struct, findings, rejected, p_base, noise, cctx, step,
+                                                 put_in)
     # (a check too: the loop the search ended with, against the nominal operators' classical loops)
     struct, findings, measured = classical_named(fitter, current, struct, findings, rejected, p_base.thresholds,
                                                  noise, recal, step)
