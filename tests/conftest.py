@@ -69,14 +69,14 @@ def _cpu_flags() -> set:
 
 
 # the CPU on which a test marked ``machine_dependent`` is known to fail (stop 94: an AMD EPYC with
-# avx512_vp2intersect, Zen 5; the same tests passed on the machines of stops 86-93 and their CI)
+# avx512_vp2intersect, Zen 5; the same tests passed on earlier stops' machines and in stop 93's CI)
 MACHINE_DEPENDENT_FLAG = "avx512_vp2intersect"
 
 
 def _machine_dependent(items):
     """A test marked ``machine_dependent(reason)``: its borderline diagnosis names otherwise on the
-    CPU of :data:`MACHINE_DEPENDENT_FLAG`, deterministically, for a reason not yet found (not
-    OpenBLAS's, NumPy's or numba's AVX-512 kernels: switched off alike). There it is an expected
+    CPU of :data:`MACHINE_DEPENDENT_FLAG`, deterministically, for a reason not yet found (for
+    rig-d30-068 not OpenBLAS's, NumPy's or numba's AVX-512 kernels: switched off alike). There it is an expected
     failure (not strict: should it pass, it passes); on every other machine it is checked."""
     if MACHINE_DEPENDENT_FLAG not in _cpu_flags():
         return
