@@ -144,9 +144,8 @@ def creep_before_drift(fitter, best, tried, struct, step, rnd):
     if best is not drift or creep is None:
         return best
     gap = score(drift["cmp"], drift["name"]) - score(creep["cmp"], creep["name"])
-    k = creep["struct"].n_params() - drift["struct"].n_params()
-    worth = (fitter.n_eff * math.log(max(creep["fit"].cost, 1e-300) / max(drift["fit"].cost, 1e-300))
-             + k * math.log(max(fitter.n_eff, 2.0)))
+    worth = _bic_behind(fitter, creep["fit"].cost, drift["fit"].cost,
+                        creep["struct"].n_params() - drift["struct"].n_params())
     if gap > CREEP_BEFORE_DRIFT and worth >= 0.0:
         return best
     what = "a further creep element" if "creep" in struct.effects else "creep"
@@ -266,9 +265,7 @@ def drift_rival_settled(fitter, current, struct, findings, p_base, noise, cctx, 
     t = try_in(fitter, "thermal_drift", without.params, s_wo, p_base, noise, cctx)
     if t is None:
         return
-    k = struct.n_params() - t["struct"].n_params()
-    worth = (fitter.n_eff * math.log(max(t["fit"].cost, 1e-300) / max(fitter.cost(current), 1e-300))
-             - k * math.log(max(fitter.n_eff, 2.0)))
+    worth = _bic_behind(fitter, t["fit"].cost, fitter.cost(current), t["struct"].n_params() - struct.n_params())
     if worth < ACCEPT["dbic"]:
         step(f"the drift in creep's place is within BIC {worth:.1f} of creep: the rival stands")
         return
@@ -297,10 +294,15 @@ def _creep_in_drift_place(fitter, current, struct, p_base, cctx, refit=False):
     # stood at BIC 1.0 or 11.1 from starts differing in the last digits (the threshold is 10); after
     # 20 at 0.0 from both (-0.1 after 30)
     fr = fitter.fit(start, s_cr, max_nfev=20)
-    k = struct.n_params() - s_cr.n_params()
-    worth = (fitter.n_eff * math.log(max(fr.cost, 1e-300) / max(fitter.cost(current), 1e-300))
-             - k * math.log(max(fitter.n_eff, 2.0)))
-    return fr, s_cr, worth, without
+    return fr, s_cr, _bic_behind(fitter, fr.cost, fitter.cost(current), s_cr.n_params() - struct.n_params()), without
+
+
+def _bic_behind(fitter, cost, cost_ref, extra):
+    """The BIC (effective sample size) by which a model of training cost ``cost`` with ``extra``
+    parameters more than the reference (fewer: negative) is worse than the reference of ``cost_ref``
+    (below zero: better)."""
+    return (fitter.n_eff * math.log(max(cost, 1e-300) / max(cost_ref, 1e-300))
+            + extra * math.log(max(fitter.n_eff, 2.0)))
 
 
 def resonance_or_mode(fitter, best, struct, p_base, recal, cctx, step, rnd):
