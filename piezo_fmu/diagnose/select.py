@@ -38,7 +38,7 @@ from .loopshape import (LOOP_HELDOUT_BETA, LOOP_HELDOUT_Z, REFIT_WORSE, SHAPE_BE
                         SHAPE_EXPLAINED, SHAPE_EXPLAINED_EACH, SHAPE_FURTHER_EXPLAINED, SHAPE_PARTIAL_BEYOND,
                         SHAPE_PARTIAL_EXPLAINED, SHAPE_PARTIAL_REMOVED, SHAPE_REMOVED, beyond_classical,
                         classical_named, further_from_nominal, loop_beside, shape_from_nominal, unnamed_loop)
-from .pairs import near_miss, slow_pair
+from .pairs import cross_miss, cross_pair, near_miss, slow_pair
 from .recalibrate import ITEM_K, ITEM_PARAMS, drop, present, without
 from .residuals import ACCEPT, full_residuals, heldout_rmse, residual_peaks, residual_sets
 from .rivals import (ORDINARY_ADOPTIONS, beside_named_mode, confidences, creep_at_floor, creep_before_drift, delay_or_lag,
@@ -275,7 +275,8 @@ def _try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cc
                     step, rnd)
     return {"name": name, "fit": fr, "cmp": cmp, "passed": passed, "why": why,
             "note": ok[1], "struct": s_new, "sets": sets_new, "bounds": bounds, "dropped": dropped,
-            "near": not passed and near_miss(cmp, name, ok, bounds)}
+            "near": not passed and near_miss(cmp, name, ok, bounds),
+            "cross": not passed and cross_miss(cmp, name, ok, bounds)}
 
 
 def put_in(fitter: Fitter, name, current, struct, p_base, noise, cctx, recal=None):
@@ -371,7 +372,8 @@ def select(fitter: Fitter, p_base, struct_nom, noise, cctx, step, max_rounds=5, 
                 tried.append(_try(fitter, name, start, alts, current, struct, p_base, sets_cur, noise, cctx,
                                   recal, step, rnd))
         pair = None if pending is not None or any(t["passed"] for t in tried) else \
-            slow_pair(fitter, tried, current, struct, sets_cur, noise, cctx, step, rnd)
+            (slow_pair(fitter, tried, current, struct, sets_cur, noise, cctx, step, rnd)
+             or cross_pair(fitter, tried, current, struct, sets_cur, noise, cctx, step, rnd, SLOW))
         if pair is not None:
             tried = [pair[0] if t["name"] == pair[0]["name"] else t for t in tried]
             pending = (pair[1], pair[0]["name"], current, struct, len(findings), len(rejected), dict(noise))
