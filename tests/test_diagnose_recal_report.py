@@ -157,8 +157,10 @@ def test_a_mode_at_its_damping_bound_is_fitted_with_a_second_lag_stage(monkeypat
     assert res["final"]["rmse"]["x"] < 1.5 * noise["x"]
     if not rules_before:             # the case still needs the rule: `pytest --rules-before`
         return
-    # each alone, as before: neither is taken and the residual stays many times the noise
+    # each alone, as before: neither is taken and the residual stays many times the noise (since stop 95
+    # the mode searched afresh beside two stages, `_mode_after_order`, finds them too: switched off here)
     monkeypatch.setattr(recalibrate, "_mode_with_order", lambda fitter, p, struct, free, tried: tried[0])
+    monkeypatch.setattr(recalibrate, "_mode_after_order", lambda *a, **k: False)
     res = analyse(raw, max_rounds=0).result
     rc = res["baseline"]["recalibrated"]
     assert rc["amplifier_order"] == 1 and not rc["first_mode_hz"].get("identified")

@@ -56,16 +56,7 @@ def slow_pair(fitter, tried, current, struct, sets_cur, noise, cctx, step, rnd):
         q = creep["fit"].params.copy()
         q.off_x, q.rate, q.curv, q.drift_tau, q.pick = dp.off_x, dp.rate, dp.curv, dp.drift_tau, pick
         starts.append(q)
-    fr = min((fitter.fit(q, s, max_nfev=10) for q in starts), key=lambda f: f.cost)
-    sets_new, _ = residual_sets(fitter, fr.params)
-    cmp = compare(sets_cur, sets_new, s.n_params() - struct.n_params(), noise, slow=True)
-    why = []
-    for name in SLOW_PAIR:
-        ok = plausible(name, fitter, current, fr.params, cmp, cctx, s)
-        bounds = at_bound(fitter, fr.params, own_parameters(name, struct, struct.with_effect(name)))
-        passed, w = passes(cmp, name, ok, bounds)
-        if not passed:
-            why.append(f"{name}: {w}")
+    cmp, why = _fitted(fitter, starts, s, SLOW_PAIR, current, struct, sets_cur, noise, cctx, True)
     gains = f"BIC gains alone: creep {creep['cmp']['dbic']:.1f}, thermal_drift {drift['cmp']['dbic']:.1f}"
     if why:
         step(f"round {rnd + 1}: creep and thermal_drift fail alone on the BIC gain only ({gains}); together "
@@ -76,6 +67,27 @@ def slow_pair(fitter, tried, current, struct, sets_cur, noise, cctx, step, rnd):
             f"{other['name']} must pass on its own next")
     step(f"round {rnd + 1}: creep and thermal_drift fail alone on the BIC gain only; together they pass "
          f"(BIC gain {cmp['dbic']:.1f}, {gains}): {first['name']} added first")
+    return _added(first, other, note)
+
+
+def _fitted(fitter, starts, s, names, current, struct, sets_cur, noise, cctx, slow):
+    """A pair ``names`` of structure ``s`` fitted from ``starts`` (the best fit kept), compared with
+    ``current`` and tested as each of its members would be: ``(cmp, why)``, ``why`` the failures."""
+    fr = min((fitter.fit(q, s, max_nfev=10) for q in starts), key=lambda f: f.cost)
+    sets_new, _ = residual_sets(fitter, fr.params)
+    cmp = compare(sets_cur, sets_new, s.n_params() - struct.n_params(), noise, slow=slow)
+    why = []
+    for name in names:
+        ok = plausible(name, fitter, current, fr.params, cmp, cctx, s)
+        bounds = at_bound(fitter, fr.params, own_parameters(name, struct, struct.with_effect(name)))
+        passed, w = passes(cmp, name, ok, bounds)
+        if not passed:
+            why.append(f"{name}: {w}")
+    return cmp, why
+
+
+def _added(first, other, note):
+    """The round's entry of ``first``, passed for the pair (``note`` added), and ``other``'s name."""
     return {**first, "passed": True, "why": "", "note": "; ".join(n for n in (first["note"], note) if n),
             "pair": other["name"]}, other["name"]
 
@@ -126,17 +138,8 @@ def _together(fitter, a, b, current, struct, sets_cur, noise, cctx, step, rnd, s
         for f in OWN_FIELDS[two["name"]]:
             setattr(q, f, copy.deepcopy(getattr(two["fit"].params, f)))
         starts.append(q)
-    fr = min((fitter.fit(q, s, max_nfev=10) for q in starts), key=lambda f: f.cost)
-    sets_new, _ = residual_sets(fitter, fr.params)
-    cmp = compare(sets_cur, sets_new, s.n_params() - struct.n_params(), noise,
-                  slow=a["name"] in slow and b["name"] in slow)
-    why = []
-    for t in (a, b):
-        ok = plausible(t["name"], fitter, current, fr.params, cmp, cctx, s)
-        bounds = at_bound(fitter, fr.params, own_parameters(t["name"], struct, struct.with_effect(t["name"])))
-        passed, w = passes(cmp, t["name"], ok, bounds)
-        if not passed:
-            why.append(f"{t['name']}: {w}")
+    cmp, why = _fitted(fitter, starts, s, (a["name"], b["name"]), current, struct, sets_cur, noise, cctx,
+                       a["name"] in slow and b["name"] in slow)
     names = f"{a['name']} (a channel made worse alone) and {b['name']}"
     if why:
         step(f"round {rnd + 1}: {names} fitted together fail too ({'; '.join(why)})")
@@ -147,5 +150,4 @@ def _together(fitter, a, b, current, struct, sets_cur, noise, cctx, step, rnd, s
     step(f"round {rnd + 1}: {names} fitted together pass (BIC gain {cmp['dbic']:.1f}, held-out rmse "
          + ", ".join(f"{c} {v['rmse_before']:.4g} -> {v['rmse_after']:.4g}" for c, v in cmp["channels"].items())
          + f"): {first['name']} added first")
-    return {**first, "passed": True, "why": "", "note": "; ".join(n for n in (first["note"], note) if n),
-            "pair": other["name"]}, other["name"]
+    return _added(first, other, note)

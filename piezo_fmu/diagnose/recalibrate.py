@@ -325,10 +325,7 @@ def _mode_after_order(fitter, rc, struct, sat):
     710.7 Hz, 1.33 + 0.57 ms, the residual at the noise). Kept (``rc`` updated, True) when the two
     beat ``rc.params`` by the BIC (three parameters, four with a new pick-off)."""
     p, ordinary = rc.params, fitter.ordinary
-    shares = (0.1, 0.25, 0.5)
-    qs = [with_params(p, tau=p.tau * (1 - share), tau2=p.tau * share) for share in shares]
-    costs = fitter.quick_many(qs)
-    start = qs[int(np.argmin(costs))]
+    start = _stage_splits(fitter, p)[0][2]
     fitter.ordinary = ordinary + ["tau2"]
     trial = Recalibration(_fit(fitter, start, struct, fitter.ordinary, 20).params,
                           nominal_mode=rc.nominal_mode, k_total=rc.k_total)
@@ -442,9 +439,7 @@ def _order(fitter, rc, struct, sat):
         return True
     trials = []
     q_now = fitter.quick(p)
-    shares = (0.1, 0.25, 0.5)
-    qs = [with_params(p, tau=p.tau * (1 - share), tau2=p.tau * share) for share in shares]
-    screen = sorted(zip(fitter.quick_many(qs), shares, qs), key=lambda t: t[0])
+    screen = _stage_splits(fitter, p)
     if _promise(fitter, q_now, screen[0][0]) < SCREEN:
         rc.report["amplifier_order"] = {"value": 1, "why_not_2": "a second lag stage does not improve the fit"}
         return False
@@ -459,6 +454,14 @@ def _order(fitter, rc, struct, sat):
         return True
     rc.report["amplifier_order"] = {"value": 1, "bic_gain_of_order_2": round(gain, 1)}
     return False
+
+
+def _stage_splits(fitter, p):
+    """``p``'s lag split into two stages (a tenth, a quarter, half of it in the second), screened with
+    the weights held: ``[(cost, share, params), ...]``, best first."""
+    shares = (0.1, 0.25, 0.5)
+    qs = [with_params(p, tau=p.tau * (1 - share), tau2=p.tau * share) for share in shares]
+    return sorted(zip(fitter.quick_many(qs), shares, qs), key=lambda t: t[0])
 
 
 def _lags(fitter, rc, struct, sat):
