@@ -1927,9 +1927,13 @@ def test_a_finer_loop_whose_refit_is_worse_on_held_out_data_keeps_its_own_fit(mo
     # jumps and the limit failed its own check: nothing was named. The loop's own fit stays
     # (select.REFIT_WORSE). Since stop 74 the cells' ridge (varpro.CELL_RIDGE) keeps the refit's
     # cells where the training blocks look, and the refit is no worse (x 0.0208 um on held-out
-    # data); the rule is checked with the ridge of before (1e-9)
+    # data). Since stop 96 the finer loop also leaves out the play operators the held-out rows see
+    # move far more often than the training rows (`catalogue._plays_supported`: here the seven at
+    # 0.45-0.75 of the voltage scale, moving in 18-51 of 4508 training rows and 25-91 of 1503 held-out
+    # ones), and even with the ridge of before the refit is then no worse. The rule is checked with
+    # both as before (the ridge at 1e-9, every operator kept)
     import piezo_fmu.diagnose.select as select
-    from piezo_fmu.diagnose import varpro
+    from piezo_fmu.diagnose import catalogue, varpro
     from piezo_fmu.diagnose.run import analyse
 
     rec, raw = _rig_recording("rig-064")
@@ -1939,6 +1943,10 @@ def test_a_finer_loop_whose_refit_is_worse_on_held_out_data_keeps_its_own_fit(mo
     assert now["final"]["effects"] == truth, (now["candidates"], now["rejected"])
     assert now["final"]["rmse"]["x"] < 0.25 * now["baseline"]["rmse"]["x"]
     monkeypatch.setattr(varpro, "CELL_RIDGE", 1e-9)
+    ridge_before = analyse(raw).result
+    assert ridge_before["baseline"]["recalibrated"]["loop"]["refit_undone"] is False
+    assert ridge_before["final"]["effects"] == truth
+    monkeypatch.setattr(catalogue, "_plays_supported", lambda fitter, q: np.ones(len(q.thresholds), bool))
     res = analyse(raw).result
     loop = res["baseline"]["recalibrated"]["loop"]
     assert loop["refined"] and loop["refit_undone"], loop
@@ -2247,8 +2255,12 @@ def test_creep_whose_fast_element_settles_at_the_floor_is_fitted_again_without_i
     assert len(creep["parameters"]["time_constants_s"]) == 1
     assert CREEP_SLOWEST_S < creep["parameters"]["time_constants_s"][0] < 2.0
     assert any("settled at the floor of its range" in m for m in steps), steps
-    for c in ("x", "us"):
-        assert res["final"]["rmse"][c] < 0.8 * res["baseline"]["rmse"][c]
+    # (the recalibration takes in a finer loop since stop 96, which left out 7 play operators: the
+    # baseline is better, x 0.112 -> 0.093 um, us 0.037 -> 0.028 V on held-out data, and so is the
+    # final model, x 0.056 -> 0.041, us 0.028 -> 0.023; creep acts on the stroke: x's final/baseline
+    # ratio 0.51 -> 0.44, the sensor's 0.75 -> 0.82)
+    assert res["final"]["rmse"]["x"] < 0.5 * res["baseline"]["rmse"]["x"]
+    assert res["final"]["rmse"]["us"] < res["baseline"]["rmse"]["us"]
     if not rules_before:             # the case still needs the rule: `pytest --rules-before`
         return
     # refused as a whole (the rule before), creep is missed

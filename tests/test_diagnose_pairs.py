@@ -1,4 +1,4 @@
-"""Creep and a thermal drift that pass only together (piezo_fmu.diagnose.pairs)."""
+"""Mechanisms that pass only together (piezo_fmu.diagnose.pairs), or once a loop that hid one went in."""
 import pytest
 
 from piezo_fmu.diagnose import select
@@ -133,3 +133,24 @@ def test_two_mechanisms_that_each_spoil_the_other_s_channel_alone_are_named_toge
         return
     monkeypatch.setattr(select, "cross_pair", lambda *a, **k: None)
     assert rig_diagnosis("rig-d39-038")["final"]["effects"] == []
+
+
+def test_a_loop_the_held_out_data_take_in_part_goes_into_the_recalibration_and_creep_beside_it_is_named(
+        rig_diagnosis, monkeypatch, rules_before):
+    # rig-d40-113 (708 Hz, 4.6 k samples): creep (4.9 noise rms in x) beside a loop shape (12.5). The
+    # finer loop failed on the BIC alone (gain -103) while the held-out data took 0.79 (x) and 0.74 (us)
+    # of its correction at z 4.8 and 5.5: under the 0.8 of before it stayed out of the recalibration,
+    # its misfit hid the creep (held-out 0.69 of its correction, z 2.2) and nothing was named. Taken in
+    # from 0.7 (`loopshape.LOOP_HELDOUT_BETA`), creep passes next round (x 0.023 -> 0.011 um away from
+    # the command's jumps; measured stop 96). The loop itself is not named: an ordinary refinement
+    said = []
+    monkeypatch.setattr(select, "_confirmed_loop", _spy(select._confirmed_loop, said))
+    res = rig_diagnosis("rig-d40-113")
+    assert True in said
+    assert res["final"]["effects"] == ["creep"], res["final"]["verdict"]
+    assert res["findings"][0]["confidence"] >= 0.5
+    assert res["final"]["rmse"]["x"] < 0.7 * res["baseline"]["rmse"]["x"], res["final"]["rmse"]     # [um]
+    if not rules_before:             # the case still needs the rule: `pytest --rules-before`
+        return
+    monkeypatch.setattr(select, "LOOP_HELDOUT_BETA", (0.8, 1.25))
+    assert rig_diagnosis("rig-d40-113")["final"]["effects"] == []
