@@ -62,8 +62,15 @@ def test_a_delay_at_a_low_sample_rate_is_named_through_a_noise_level_too_high(mo
                                                                                rig_diagnosis):
     # rig-d23-045 (independent rig, 373 Hz, steps and a chirp): a one-sample delay. The recalibrated
     # model's misfit filled the upper half of the spectrum; the delay took the held-out rmse from
-    # 0.0647 to 0.0284 um and from 2.11 to 0.29 mV and "explained 0 %": nothing was named
+    # 0.0647 to 0.0284 um and from 2.11 to 0.29 mV and "explained 0 %": nothing was named. Since
+    # stop 96 the finer loop leaves out the play operators the training rows barely see move
+    # (`catalogue._plays_supported`), and the delay is named without the bound too (x 0.028 um held
+    # out): the case before is that rule off as well
+    from piezo_fmu.diagnose import catalogue
+
     monkeypatch.setattr(stats, "NOISE_BOUND", bound)
+    if not bound:
+        monkeypatch.setattr(catalogue, "_plays_supported", lambda fitter, q: np.ones(len(q.thresholds), bool))
     res = rig_diagnosis("rig-d23-045")
     if bound:
         assert res["final"]["effects"] == ["time_delay"], res["final"]["verdict"]

@@ -6,6 +6,7 @@ does not keep a residual below ``ORDINARY`` noise rms from "nothing is missing";
 does. The recalibrated model is not replaced by a refit that fits worse. A rival taken into the
 recalibration after a finding does not keep the finding from being named.
 """
+import numpy as np
 import pytest
 
 from piezo_fmu.diagnose import results
@@ -107,19 +108,27 @@ def test_the_recalibrated_model_is_not_replaced_by_a_worse_refit():
     assert "amplifier_current_limit" not in d.result["final"]["effects"]
 
 
-def test_a_search_that_ends_worse_than_the_refitted_nominal_model_starts_again():
+def test_a_search_that_ends_worse_than_the_refitted_nominal_model_starts_again(monkeypatch):
     # rig-d29-050, clean (Bouc-Wen loop, 5.16 kHz): the recalibration's threshold scale settled at
     # 1.44 x the recording's span, 0.047 um held out in x against a noise of 0.0087 um; a current
     # limit took part of that (confidence 0.87) and was named. The nominal model refitted after the
     # search fitted the held-out data better than the final one (x 0.017 against 0.041 um) at a
-    # lower training cost: the search starts again from it and names nothing (measured stop 84)
+    # lower training cost: the search starts again from it and names nothing (measured stop 84).
+    # Since stop 96 the finer loop leaves out the play operators the training rows barely see move
+    # (`catalogue._plays_supported`) and the first search names nothing (x 0.0157 um held out): the
+    # search's new start is checked with that rule off, as before
     from piezo_fmu import rig
+    from piezo_fmu.diagnose import catalogue
     from piezo_fmu.diagnose.run import analyse
 
     rec = rig.generate(next(s for s in rig.cases(draw=29) if s.case_id == "rig-d29-050"))
+    raw = [{"name": "rig-d29-050", "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}]
     again = []
-    res = analyse([{"name": "rig-d29-050", "time": rec.time, "u": rec.u, "x": rec.x, "us": rec.us}],
-                  say=lambda msg: again.append(msg) if "starts again" in msg else None).result
+    now = analyse(raw, say=lambda msg: again.append(msg) if "starts again" in msg else None).result
+    assert not again and now["final"]["effects"] == [], now["final"]["verdict"]
+    assert now["final"]["rmse"]["x"] < 0.02, now["final"]["rmse"]           # [um]
+    monkeypatch.setattr(catalogue, "_plays_supported", lambda fitter, q: np.ones(len(q.thresholds), bool))
+    res = analyse(raw, say=lambda msg: again.append(msg) if "starts again" in msg else None).result
     assert len(again) == 1
     assert res["final"]["effects"] == [], res["final"]["verdict"]
     assert res["final"]["nothing_missing"], res["final"]["verdict"]
