@@ -285,15 +285,8 @@ def _supported(fitter: Fitter, q, n):
     elsewhere, and the finer loop that would have taken in an ordinary loop difference failed).
     Only the command decides this. A state counts as switched where it differs from its median
     over the training rows; a cell switched on fewer than 20 x ``CELL_SUPPORT`` held-out rows stays."""
-    on_tr = on_ho = 0.0
-    for rp, r in zip(fitter.replays(q), fitter.recs):
-        zc = at_samples(r, rp.z[n:])
-        moved = np.abs(zc - np.median(zc[:, r.train], axis=1)[:, None]) > 0.5
-        on_tr = on_tr + moved[:, r.train].sum(axis=1)
-        on_ho = on_ho + moved[:, r.heldout].sum(axis=1)
-    n_tr = max(sum(int(r.train.sum()) for r in fitter.recs), 1)
-    n_ho = max(sum(int(r.heldout.sum()) for r in fitter.recs), 1)
-    return on_ho / n_ho <= CELL_SUPPORT * np.maximum(on_tr / n_tr, 20.0 / n_ho)
+    return _seen_in_training(fitter, q, slice(n, None), 20.0,
+                             lambda z, r: np.abs(z - np.median(z[:, r.train], axis=1)[:, None]) > 0.5)
 
 
 def _plays_supported(fitter: Fitter, q):
@@ -301,17 +294,23 @@ def _plays_supported(fitter: Fitter, q):
     often as the held-out rows do, each as a share of its rows (as :func:`_supported` for cells;
     an operator moving in fewer than ``PLAY_FLOOR x CELL_SUPPORT`` held-out rows stays). A play
     moves where its state changes between samples; only the command and the thresholds decide."""
-    n = len(q.thresholds)
+    return _seen_in_training(fitter, q, slice(None, len(q.thresholds)), PLAY_FLOOR,
+                             lambda z, r: np.abs(np.diff(z, axis=1, prepend=z[:, :1]))
+                             > 1e-9 * max(float(np.abs(z).max()), 1e-12))
+
+
+def _seen_in_training(fitter: Fitter, q, states, floor, moved):
+    """Whether each of ``q``'s loop states ``states`` (a slice of the replay's states) is ``moved``
+    (``moved(z, rec)``: a boolean per state and sample) on a share of the held-out rows at most
+    ``CELL_SUPPORT`` x its share of the training rows (at least ``floor`` held-out rows counted)."""
     on_tr = on_ho = 0.0
     for rp, r in zip(fitter.replays(q), fitter.recs):
-        z = at_samples(r, rp.z[:n])
-        dz = np.abs(np.diff(z, axis=1, prepend=z[:, :1]))
-        mv = dz > 1e-9 * max(float(np.abs(z).max()), 1e-12)
-        on_tr = on_tr + mv[:, r.train].sum(axis=1)
-        on_ho = on_ho + mv[:, r.heldout].sum(axis=1)
+        m = moved(at_samples(r, rp.z[states]), r)
+        on_tr = on_tr + m[:, r.train].sum(axis=1)
+        on_ho = on_ho + m[:, r.heldout].sum(axis=1)
     n_tr = max(sum(int(r.train.sum()) for r in fitter.recs), 1)
     n_ho = max(sum(int(r.heldout.sum()) for r in fitter.recs), 1)
-    return on_ho / n_ho <= CELL_SUPPORT * np.maximum(on_tr / n_tr, PLAY_FLOOR / n_ho)
+    return on_ho / n_ho <= CELL_SUPPORT * np.maximum(on_tr / n_tr, floor / n_ho)
 
 
 def shape_size(p, nominal_thresholds):
