@@ -2174,7 +2174,7 @@ def test_a_cell_switched_only_in_a_held_out_block_is_left_out(monkeypatch, rules
     # block: the finer loop failed on held-out data, the ordinary loop difference stayed in the
     # residual and the delay explained 31 % of it (confidence 0.34, a candidate). Since stop 74 the
     # cells' ridge (varpro.CELL_RIDGE) holds those cells as well: either rule alone names the delay
-    from piezo_fmu.diagnose import catalogue, varpro
+    from piezo_fmu.diagnose import support, varpro
     from piezo_fmu.diagnose.run import analyse
 
     rec, raw = _rig_recording("rig-072")
@@ -2184,7 +2184,7 @@ def test_a_cell_switched_only_in_a_held_out_block_is_left_out(monkeypatch, rules
     assert res["final"]["effects"] == ["time_delay"], (res["candidates"], res["rejected"])
     assert any("an ordinary loop difference, taken into the recalibration" in m for m in steps), steps
     # every cell kept, the ridge holding them: the delay named
-    monkeypatch.setattr(catalogue, "CELL_SUPPORT", math.inf)
+    monkeypatch.setattr(support, "CELL_SUPPORT", math.inf)
     assert analyse(raw).result["final"]["effects"] == ["time_delay"]
     if not rules_before:             # the case still needs the rule: `pytest --rules-before`
         return

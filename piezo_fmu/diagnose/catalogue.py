@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.preisach import grid_cells
-from .engine import amplifier_output, at_samples, chain, limited_samples, lowpass, predict, trend
+from .engine import amplifier_output, chain, limited_samples, lowpass, predict, trend
 from .delays import delay_search
 from .drifts import drift_start
 from .fit import Fitter, Structure
@@ -27,6 +27,7 @@ from .offsets import OFFSET_PARTS, offset_drift_rival
 from .residuals import MODE_BAND_WIDTH, band_share, holds_still, taken_in_holds
 from .starts import further_mode_start, log_grid, swap_lag_account, with_params
 from .stats import near_range_end
+from .support import CELL_FLOOR, PLAY_FLOOR, cell_switched, play_moves, seen_in_training
 
 __all__ = ["CATALOGUE", "Mechanism", "other_charge", "plausible", "propose"]
 
@@ -227,16 +228,6 @@ DRIFT_OWN_SHARE = 0.15
 DRIFT_OWN_REMOVED = 1.0
 SHAPE_GRID = 6        # steps of the KP cells' Preisach grid over the recorded stack voltages (21 cells)
 SHAPE_GRID_FINE = 8   # the finer grid a named shape may ask for next (36 cells)
-# a play operator of the finer loop (the nominal ones too) that the held-out rows see move more than
-# CELL_SUPPORT times as often as the training rows (each as a share of its rows; this many held-out
-# rows count as moving at least) is left out: its weight, fitted to the few training rows where it
-# moves, draws its own stroke where the held-out rows alone move it (rig-d40-095, a Bouc-Wen loop:
-# the operators at 0.5-0.8 of the voltage scale moved in 0-7 training rows and 42-57 held-out rows,
-# the first rise of a sine after a 38 V step; their weights -15.2, +13.7, -12.3 um cancelled on the
-# training rows and took that held-out block from 0.098 to 0.317 um: the finer loop failed, x 186 %
-# worse. Without them it passes: x 0.028 -> 0.005 um, and the loop shape is named)
-PLAY_FLOOR = 1.0
-CELL_SUPPORT = 3.3    # see _supported (rig-072's cells out at 3.5-4.9; true shapes' cells 1.2-3.05)
 
 
 def finer_loop(fitter: Fitter, p, struct, steps=SHAPE_GRID):
@@ -276,41 +267,21 @@ def finer_loop(fitter: Fitter, p, struct, steps=SHAPE_GRID):
 
 def _supported(fitter: Fitter, q, n):
     """Which of ``q``'s KP cells (after the ``n`` play operators) the training rows see switched
-    at least ``1 / CELL_SUPPORT`` as often as the held-out rows do, each as a share of its rows
-    (the cells of the true shapes rig-028, 052, 088 and 108 reach 1.3, 1.4, 1.2 and 3.05).
+    (:func:`.support.seen_in_training`; a cell switched on fewer than ``CELL_FLOOR x CELL_SUPPORT``
+    held-out rows stays).
 
     A cell switched on at the record's one peak and off at thresholds crossed only inside the
     held-out block after it is a few rows to the fit and a whole block to the validation: its
     weight, fitted to those few, draws a step there (rig-072: 0.94 um off in that block, 0.01-0.05
-    elsewhere, and the finer loop that would have taken in an ordinary loop difference failed).
-    Only the command decides this. A state counts as switched where it differs from its median
-    over the training rows; a cell switched on fewer than 20 x ``CELL_SUPPORT`` held-out rows stays."""
-    return _seen_in_training(fitter, q, slice(n, None), 20.0,
-                             lambda z, r: np.abs(z - np.median(z[:, r.train], axis=1)[:, None]) > 0.5)
+    elsewhere, and the finer loop that would have taken in an ordinary loop difference failed)."""
+    return seen_in_training(fitter.recs, fitter.replays(q), slice(n, None), CELL_FLOOR, cell_switched)
 
 
 def _plays_supported(fitter: Fitter, q):
-    """Which of ``q``'s play operators the training rows see move at least ``1 / CELL_SUPPORT`` as
-    often as the held-out rows do, each as a share of its rows (as :func:`_supported` for cells;
-    an operator moving in fewer than ``PLAY_FLOOR x CELL_SUPPORT`` held-out rows stays). A play
-    moves where its state changes between samples; only the command and the thresholds decide."""
-    return _seen_in_training(fitter, q, slice(None, len(q.thresholds)), PLAY_FLOOR,
-                             lambda z, r: np.abs(np.diff(z, axis=1, prepend=z[:, :1]))
-                             > 1e-9 * max(float(np.abs(z).max()), 1e-12))
-
-
-def _seen_in_training(fitter: Fitter, q, states, floor, moved):
-    """Whether each of ``q``'s loop states ``states`` (a slice of the replay's states) is ``moved``
-    (``moved(z, rec)``: a boolean per state and sample) on a share of the held-out rows at most
-    ``CELL_SUPPORT`` x its share of the training rows (at least ``floor`` held-out rows counted)."""
-    on_tr = on_ho = 0.0
-    for rp, r in zip(fitter.replays(q), fitter.recs):
-        m = moved(at_samples(r, rp.z[states]), r)
-        on_tr = on_tr + m[:, r.train].sum(axis=1)
-        on_ho = on_ho + m[:, r.heldout].sum(axis=1)
-    n_tr = max(sum(int(r.train.sum()) for r in fitter.recs), 1)
-    n_ho = max(sum(int(r.heldout.sum()) for r in fitter.recs), 1)
-    return on_ho / n_ho <= CELL_SUPPORT * np.maximum(on_tr / n_tr, floor / n_ho)
+    """Which of ``q``'s play operators the training rows see move (as :func:`_supported` for
+    cells; an operator moving in fewer than ``PLAY_FLOOR x CELL_SUPPORT`` held-out rows stays)."""
+    return seen_in_training(fitter.recs, fitter.replays(q), slice(None, len(q.thresholds)), PLAY_FLOOR,
+                            play_moves)
 
 
 def shape_size(p, nominal_thresholds):

@@ -113,7 +113,14 @@ def _outcome(res):
             "noise_est": res["baseline"]["noise"],
             "recalibrated": res["baseline"]["recalibrated"],
             "parameters": {f["effect"]: f["parameters"] for f in res["findings"]},
-            "timing": res.get("timing_s"), "error": None}
+            "timing": res.get("timing_s"), "error": None,
+            # what each confidence was made of (decide.confidence's factors), to study its calibration
+            "evidence": {f["effect"]: {k: f["evidence"][k] for k in _EVIDENCE}
+                         for f in res["findings"] + res.get("candidates", [])}}
+
+
+_EVIDENCE = ("explained_share", "explained_share_heldout", "heldout_beta", "heldout_z", "delta_bic",
+             "strongest_alternative")
 
 
 def _ceiling(diag, missed):
