@@ -2524,6 +2524,26 @@ def test_a_miss_put_in_afterwards_says_whether_the_tests_see_it(monkeypatch):
     assert back.search == {} and back.result["final"]["effects"] == []
 
 
+def test_the_evaluation_records_what_each_confidence_was_made_of():
+    # each finding's and candidate's evidence goes into the evaluation's results (stop 97), so the
+    # confidence's factors can be studied over a whole set without running it again
+    from piezo_fmu.diagnose.evaluate import _EVIDENCE, _outcome
+
+    def entry(name, conf, beta):
+        ev = {"explained_share": {"x": 0.4}, "explained_share_heldout": {"x": 0.45}, "heldout_beta": beta,
+              "heldout_z": 6.8, "delta_bic": 55.1, "strongest_alternative": None, "note": "not recorded"}
+        return {"effect": name, "confidence": conf, "parameters": {}, "evidence": ev}
+
+    res = {"final": {"effects": ["creep"], "nothing_missing": False, "verdict": "", "rmse": {"x": 0.01}},
+           "findings": [entry("creep", 0.91, 0.97)], "candidates": [entry("thermal_drift", 0.44, 0.81)],
+           "baseline": {"rmse": {"x": 0.02}, "noise": {"x": 0.003}, "recalibrated": {}}}
+    out = _outcome(res)
+    assert set(out["evidence"]) == {"creep", "thermal_drift"}
+    assert set(out["evidence"]["thermal_drift"]) == set(_EVIDENCE)
+    assert out["evidence"]["thermal_drift"]["heldout_beta"] == 0.81                 # [1]
+    assert out["evidence"]["creep"]["delta_bic"] == 55.1                            # [1]
+
+
 def test_the_ceiling_table_counts_what_the_tests_see_and_why_not():
     from piezo_fmu.diagnose.scoring import markdown, summarise
 
